@@ -1,0 +1,37 @@
+"""What every command shares: one-line errors with exit status 2, device choice, output flags."""
+
+from __future__ import annotations
+
+import sys
+
+import click
+
+from dbb_capture.errors import DbbError
+from dbb_capture.progress import console
+
+
+class DbbGroup(click.Group):
+    """A click group whose usage errors and :class:`DbbError` end in one red line and exit 2."""
+
+    def main(self, args=None, prog_name=None, **extra):  # noqa: D102 - click API
+        try:
+            rv = super().main(args=args, prog_name=prog_name, standalone_mode=False, **extra)
+        except click.exceptions.Abort:
+            console.print("[red]aborted[/red]")
+            sys.exit(130)
+        except click.ClickException as e:
+            # click's own format spans several lines (usage, hint, error): users asked for one.
+            ctx = getattr(e, "ctx", None)
+            where = ctx.command_path if ctx is not None else (prog_name or self.name)
+            console.print(f"[red]error:[/red] {where}: {e.format_message()}", soft_wrap=True)
+            sys.exit(2)
+        except DbbError as e:
+            console.print(f"[red]error:[/red] {e}", soft_wrap=True)
+            sys.exit(2)
+        if isinstance(rv, int) and rv != 0:
+            sys.exit(rv)
+        sys.exit(0)
+
+
+overwrite_option = click.option(
+    "--overwrite", is_flag=True, help="Replace the output if it already exists.")
