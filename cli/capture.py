@@ -56,12 +56,17 @@ def _floats(text: str | None, n: int | None, what: str) -> tuple[float, ...] | N
               help="Anti-aliasing samples per pixel along each axis.")
 @click.option("--noise", type=click.FloatRange(0, 0.2), default=0.01, show_default=True,
               help="Sensor read-noise std (fraction of full scale); shot noise scales with it.")
+@click.option("--crf", type=click.IntRange(0, 51), default=18, show_default=True,
+              help="H.264 quality of the videos (lower: better and larger).")
+@click.option("--camera-json", is_flag=True,
+              help="Also write camera.json (true intrinsics) so preprocess skips calibration.")
 @click.option("--no-background", is_flag=True, help="Do not write a clean plate.")
 @overwrite_option
 def synth(out: Path, kind: str, seconds: float, background_seconds: float | None, fps: float,
           resolution: str, fov: float, seed: int, distortion: str | None, board_squares: str,
           square_length: float, marker_length: float, dictionary: str, legacy_pattern: bool,
-          samples: int, noise: float, no_background: bool, overwrite: bool) -> None:
+          samples: int, noise: float, crf: int, camera_json: bool, no_background: bool,
+          overwrite: bool) -> None:
     """Render a synthetic capture with ground truth into OUT.
 
     Writes video.mp4, background.mp4 (clean plate), board.json, object.json, camera.json
@@ -81,9 +86,9 @@ def synth(out: Path, kind: str, seconds: float, background_seconds: float | None
     cfg = SynthConfig(
         kind=kind, seconds=seconds, fps=fps, width=w, height=h, hfov_deg=fov, seed=seed,
         dist=_floats(distortion, 5, "--distortion") or (0.0,) * 5, board=board,
-        samples=samples, noise=noise,
+        samples=samples, noise=noise, crf=crf,
         background_seconds=None if no_background else (background_seconds or seconds))
-    made = write_capture(cfg, out, overwrite=overwrite)
+    made = write_capture(cfg, out, overwrite=overwrite, with_camera_json=camera_json)
     console.print(f"[green]wrote[/green] {made.root}: {made.n_frames} frames "
                   f"({made.width}x{made.height} @ {made.fps:g} fps), "
                   f"{made.n_background_frames} clean-plate frames, "
