@@ -1,0 +1,534 @@
+"""ChArUco detection, camera calibration and per-frame camera poses in the board frame.
+
+Flow: frames -> :class:`Detection` (board corners, full-resolution pixels) -> intrinsics
+(given, or :func:`calibrate` from the detections) -> :class:`FramePose` per frame
+(IPPE -> LM refinement, flip check, corner and reprojection gates) -> outlier rejection
+along the video -> optional joint refinement of intrinsics and all poses.
+
+Fast detection (:class:`BoardDetector`): markers are found on a reduced image, inside the
+board's region from the previous frame when there is one, and the ChArUco corners are then
+refined at full resolution. :func:`detect_footage` splits the footage into contiguous
+segments decoded and detected in ``spawn`` worker processes (rawpy's OpenMP threads
+deadlock under ``fork``).
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing as mp
+import queue as queue_mod
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import cv2
+import numpy as np
+
+from .board import BoardSpec, aruco_dictionary_names
+from .cameras import Intrinsics, invert_rigid, rigid
+from .errors import DbbError
+from .io import Frame, FootageSource, blurry_mask, sharpness, to_gray8
+
+
+# --------------------------------------------------------------------------- detection
+@dataclass(frozen=True)
+class Detection:
+    """Board corners found in one frame. ``ids`` (N,) ChArUco ids, ``corners`` (N, 2) full-res px."""
+
+    index: int
+    time: float
+    name: str
+    ids: np.ndarray
+    corners: np.ndarray
+    n_markers: int
+    sharpness: float
+
+    @property
+    def n_corners(self) -> int:
+        return int(len(self.ids))
+
+
+@dataclass(frozen=True)
+class DetectorConfig:
+    """Fast-path knobs. ``max_side``: long side (px) of the image markers are searched in."""
+
+    max_side: int = 960
+    track: bool = True
+    refine: bool = True       # re-refine corners at full resolution (cornerSubPix)
+
+
+class BoardDetector:
+    """Stateful per-stream detector: remembers the board's region to search the next frame."""
+
+    def __init__(self, board: BoardSpec, cfg: DetectorConfig = DetectorConfig()):
+        self.board = board
+        self.cfg = cfg
+        self._cv_board = board.cv_board()
+        self._det = cv2.aruco.CharucoDetector(self._cv_board)
+        self._roi: tuple[int, int, int, int] | None = None   # x0, y0, x1, y1 in full-res px
+        self._last_n = 0
+
+    def reset(self) -> None:
+        self._roi, self._last_n = None, 0
+
+    def _detect_in(self, gray: np.ndarray, roi: tuple[int, int, int, int] | None, scale: float):
+        """detectBoard on ``gray`` cropped to ``roi`` and resized by ``scale``; results in full-res px."""
+        x0, y0 = (roi[0], roi[1]) if roi else (0, 0)
+        sub = gray[roi[1]:roi[3], roi[0]:roi[2]] if roi else gray
+        small = sub if scale == 1.0 else cv2.resize(sub, None, fx=scale, fy=scale,
+                                                    interpolation=cv2.INTER_AREA)
+        cc, ci, mc, mi = self._det.detectBoard(small)
+        n_markers = 0 if mi is None else int(len(np.ravel(mi)))
+        if cc is None or ci is None or len(np.ravel(ci)) == 0:
+            return None, None, n_markers, mc
+        off = np.array([x0, y0], np.float64)
+        # Pixel centres sit at integers in both images: full = (small + 0.5) / s - 0.5.
+        corners = (np.asarray(cc, np.float64).reshape(-1, 2) + 0.5) / scale - 0.5 + off
+        mcs = [(np.asarray(m, np.float64).reshape(-1, 2) + 0.5) / scale - 0.5 + off for m in mc]
+        return np.asarray(ci).reshape(-1).astype(np.int32), corners, n_markers, mcs
+
+    def detect(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+        """Board corners in a grey frame (H, W) uint8: (ids (N,), corners (N, 2) px, markers found)."""
+        H, W = gray.shape
+        scale = min(1.0, self.cfg.max_side / max(H, W))
+        ids = corners = None
+        n_markers, mcs = 0, None
+        if self.cfg.track and self._roi is not None:
+            ids, corners, n_markers, mcs = self._detect_in(gray, self._roi, scale)
+            if ids is None or len(ids) < 0.8 * self._last_n:
+                ids = None  # the board moved out of the region or got cut: search everywhere
+        if ids is None:
+            ids, corners, n_markers, mcs = self._detect_in(gray, None, scale)
+        if ids is None:
+            self.reset()
+            return np.zeros(0, np.int32), np.zeros((0, 2)), n_markers
+        if self.cfg.refine:
+            corners = self._refine(gray, corners, mcs)
+        self._last_n = len(ids)
+        pts = np.concatenate([corners] + list(mcs or []))
+        lo, hi = pts.min(0), pts.max(0)
+        pad = 0.25 * (hi - lo) + 24
+        self._roi = (int(max(0, lo[0] - pad[0])), int(max(0, lo[1] - pad[1])),
+                     int(min(W, hi[0] + pad[0] + 1)), int(min(H, hi[1] + pad[1] + 1)))
+        return ids, corners, n_markers
+
+    def _refine(self, gray: np.ndarray, corners: np.ndarray, marker_corners) -> np.ndarray:
+        """cornerSubPix at full resolution, with a window that stays inside the white margin
+        between the saddle point and the nearest marker edge."""
+        side = np.median([np.linalg.norm(np.diff(np.vstack([m, m[:1]]), axis=0), axis=1).mean()
+                          for m in marker_corners]) if marker_corners else 0.0
+        margin_px = side * (self.board.square_length - self.board.marker_length) / (2 * self.board.marker_length)
+        half = int(np.clip(math.floor(0.8 * margin_px), 2, 12))
+        pts = corners.astype(np.float32).reshape(-1, 1, 2)
+        crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.005)
+        refined = cv2.cornerSubPix(gray, pts.copy(), (half, half), (-1, -1), crit).reshape(-1, 2)
+        # A corner that wanders farther than the reduced image's pixel was pulled off by clutter.
+        moved = np.linalg.norm(refined - corners, axis=1)
+        max_move = max(1.5, 1.0 / min(1.0, self.cfg.max_side / max(gray.shape)))
+        return np.where((moved < max_move)[:, None], refined.astype(np.float64), corners)
+
+
+def detect_frames(frames, board: BoardSpec, cfg: DetectorConfig = DetectorConfig(),
+                  tick: Callable[[], None] | None = None) -> list[Detection]:
+    """Detect the board in an iterable of :class:`Frame` (grey or RGB), in order (tracking)."""
+    det = BoardDetector(board, cfg)
+    out = []
+    for f in frames:
+        gray = to_gray8(f.image)
+        ids, corners, n_markers = det.detect(gray)
+        small = gray if max(gray.shape) <= 1000 else cv2.resize(gray, None, fx=0.5, fy=0.5,
+                                                                  interpolation=cv2.INTER_AREA)
+        out.append(Detection(f.index, f.time, f.name, ids, corners, n_markers, sharpness(small)))
+        if tick is not None:
+            tick()
+    return out
+
+
+@dataclass(frozen=True)
+class _Segment:
+    source: FootageSource
+    indices: tuple[int, ...]
+    board: BoardSpec
+    cfg: DetectorConfig
+
+
+def _detect_segment(seg: _Segment, queue=None) -> list[Detection]:
+    """Worker: decode and detect one contiguous segment (runs in a spawned process)."""
+    cv2.setNumThreads(1)  # one process per core already
+    tick = (lambda: queue.put(1)) if queue is not None else None
+    return detect_frames(seg.source.read(seg.indices, gray=True), seg.board, seg.cfg, tick)
+
+
+def detect_footage(source: FootageSource, indices: Sequence[int], board: BoardSpec,
+                   cfg: DetectorConfig = DetectorConfig(), workers: int = 1,
+                   tick: Callable[[int], None] | None = None) -> list[Detection]:
+    """Detect the board in frames ``indices`` of ``source``; ``workers`` > 1 splits the footage
+    into that many contiguous segments, each decoded and detected in its own spawned process."""
+    indices = list(indices)
+    workers = max(1, min(workers, len(indices) // 8 or 1))
+    if workers == 1:
+        return detect_frames(source.read(indices, gray=True), board, cfg,
+                             (lambda: tick(1)) if tick else None)
+    chunks = [tuple(c.tolist()) for c in np.array_split(np.asarray(indices), workers)]
+    ctx = mp.get_context("spawn")
+    with mp.Manager() as manager, ProcessPoolExecutor(workers, mp_context=ctx) as pool:
+        queue = manager.Queue()
+        futures = [pool.submit(_detect_segment, _Segment(source, c, board, cfg), queue) for c in chunks]
+        while True:
+            try:
+                queue.get(timeout=0.2)
+            except queue_mod.Empty:
+                if all(f.done() for f in futures):
+                    break
+                continue
+            if tick:
+                tick(1)
+        results = [f.result() for f in futures]
+    return [d for r in results for d in r]
+
+
+# --------------------------------------------------------------------------- diagnosis
+def diagnose_no_board(frames: Sequence[np.ndarray], board: BoardSpec) -> str:
+    """Why no board was found in grey ``frames``: which dictionary's markers they show instead."""
+    params = cv2.aruco.DetectorParameters()
+    counts: dict[str, int] = {}
+    for name in aruco_dictionary_names():
+        det = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)), params)
+        n = 0
+        for g in frames:
+            small = g if max(g.shape) <= 1000 else cv2.resize(g, None, fx=960 / max(g.shape),
+                                                              fy=960 / max(g.shape))
+            _, ids, _ = det.detectMarkers(small)
+            n += 0 if ids is None else len(ids)
+        counts[name] = n
+    own = counts.get(board.dictionary, 0)
+    best = max(counts.items(), key=lambda kv: (kv[1], -len(kv[0]), kv[0] == board.dictionary))
+    if own > 0 and best[1] <= own:
+        return (f"{board.dictionary} markers were found but no corners of a {board.squares_x}x"
+                f"{board.squares_y} board: check squares_x, squares_y and legacy_pattern in board.json")
+    if best[1] > 0:
+        # Smaller dictionaries are prefixes of larger ones of the same family: name the smallest.
+        family = [k for k, v in counts.items() if v == best[1] and k.split("_")[1] == best[0].split("_")[1]]
+        name = min(family, key=lambda k: int(k.rsplit("_", 1)[1]) if k.rsplit("_", 1)[1].isdigit() else 0)
+        return (f"the board's dictionary does not match: board.json says {board.dictionary} but the "
+                f"frames show {name} markers ({best[1]} found)")
+    return "no ArUco markers of any dictionary were found (is the board in view and in focus?)"
+
+
+# --------------------------------------------------------------------------- calibration
+@dataclass(frozen=True)
+class Calibration:
+    """Intrinsics from board views: RMS reprojection error (px), views used and rejected (names)."""
+
+    intrinsics: Intrinsics
+    rms: float
+    used: tuple[str, ...]
+    rejected: tuple[str, ...]
+
+    def to_json(self) -> dict:
+        return {**self.intrinsics.to_json(), "rms": round(self.rms, 4),
+                "views_used": len(self.used), "views_rejected": list(self.rejected)}
+
+
+def _view_features(d: Detection, board: BoardSpec, width: int, height: int) -> np.ndarray:
+    """A small vector describing how the board appears: position, size and perspective (homography)."""
+    obj = board.chessboard_corners()[d.ids][:, :2]
+    H, _ = cv2.findHomography(obj, d.corners)
+    c = d.corners.mean(0)
+    spread = np.log(d.corners.std(0).mean() / max(width, height) + 1e-6)
+    if H is None:
+        return np.array([c[0] / width, c[1] / height, spread, 0, 0])
+    Hn = H / H[2, 2]
+    persp = Hn[2, :2] * board.size_m[0] * 3  # foreshortening direction and strength
+    return np.array([c[0] / width, c[1] / height, spread, persp[0], persp[1]])
+
+
+def select_views(dets: Sequence[Detection], board: BoardSpec, width: int, height: int,
+                 max_views: int = 40, min_corners: int = 8) -> list[Detection]:
+    """Diverse board views for calibration: greedy farthest-point sampling over view features."""
+    good = [d for d in dets if d.n_corners >= min_corners and
+            not board.cv_board().checkCharucoCornersCollinear(d.ids)]
+    if len(good) <= max_views:
+        return good
+    feats = np.stack([_view_features(d, board, width, height) for d in good])
+    feats = (feats - feats.mean(0)) / (feats.std(0) + 1e-9)
+    chosen = [int(np.argmax([d.n_corners for d in good]))]
+    dist = np.linalg.norm(feats - feats[chosen[0]], axis=1)
+    while len(chosen) < max_views:
+        k = int(np.argmax(dist))
+        chosen.append(k)
+        dist = np.minimum(dist, np.linalg.norm(feats - feats[k], axis=1))
+    return [good[k] for k in sorted(chosen)]
+
+
+def calibrate(dets: Sequence[Detection], board: BoardSpec, width: int, height: int,
+              max_views: int = 40, min_views: int = 3) -> Calibration:
+    """Intrinsics (OpenCV k1, k2, p1, p2, k3) from board detections, rejecting outlier views.
+
+    Views whose own RMS exceeds max(3 x median, 1 px) are dropped and the fit repeated.
+    """
+    views = select_views(dets, board, width, height, max_views)
+    if len(views) < min_views:
+        raise DbbError(f"calibration needs at least {min_views} frames showing 8+ board corners, "
+                       f"found {len(views)}")
+    obj_all = board.chessboard_corners().astype(np.float32)
+    rejected: list[str] = []
+    flags = 0 if len(views) >= 4 else cv2.CALIB_FIX_K3
+    for _ in range(3):
+        objs = [obj_all[d.ids] for d in views]
+        imgs = [d.corners.astype(np.float32) for d in views]
+        rms, K, dist, _, _, _, _, per_view = cv2.calibrateCameraExtended(
+            objs, imgs, (width, height), None, None, flags=flags)
+        per_view = per_view.ravel()
+        bad = per_view > max(3 * np.median(per_view), 1.0)
+        if not bad.any() or len(views) - bad.sum() < min_views:
+            break
+        rejected += [d.name for d, b in zip(views, bad) if b]
+        views = [d for d, b in zip(views, bad) if not b]
+    dist = np.ravel(dist)
+    intr = Intrinsics(width, height, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]),
+                      tuple(float(v) for v in dist[:5]))
+    return Calibration(intr, float(rms), tuple(d.name for d in views), tuple(rejected))
+
+
+# --------------------------------------------------------------------------- poses
+@dataclass(frozen=True)
+class PoseConfig:
+    """Gates. ``max_reproj_px``: per-frame RMS limit; ``ambiguity``: IPPE error ratio above
+    which the two planar solutions are treated as a possible flip."""
+
+    min_corners: int = 6
+    max_reproj_px: float = 1.5
+    ambiguity: float = 0.6
+    outlier_window: int = 4
+    outlier_deg: float = 3.0
+    outlier_rel: float = 0.05     # position jump, as a fraction of the camera-board distance
+
+
+@dataclass(frozen=True)
+class FramePose:
+    """A frame's camera: ``c2w`` (4, 4) OpenCV board-from-camera (metres), or None with ``status``.
+
+    ``status``: "posed", or why not ("no board", "too few corners", "collinear corners",
+    "reprojection", "outlier", "blurry").
+    """
+
+    index: int
+    time: float
+    name: str
+    status: str
+    c2w: np.ndarray | None = None
+    n_corners: int = 0
+    reproj_px: float = float("nan")
+    ambiguity: float = float("nan")
+    alt_c2w: np.ndarray | None = field(default=None, repr=False)  # the other planar solution
+
+    @property
+    def posed(self) -> bool:
+        return self.status == "posed"
+
+
+def _rms(obj: np.ndarray, img: np.ndarray, rvec, tvec, K, dist) -> float:
+    proj, _ = cv2.projectPoints(obj, rvec, tvec, K, dist)
+    return float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img) ** 2, axis=1))))
+
+
+def _c2w(rvec, tvec) -> np.ndarray:
+    R, _ = cv2.Rodrigues(np.asarray(rvec, np.float64))
+    return invert_rigid(rigid(R, np.ravel(tvec)))
+
+
+def solve_pose(obj: np.ndarray, img: np.ndarray, intr: Intrinsics) -> tuple[np.ndarray, float, float, np.ndarray]:
+    """Planar PnP for board points ``obj`` (N, 3) seen at ``img`` (N, 2) px.
+
+    IPPE gives both planar solutions; each is LM-refined. Returns (c2w (4, 4), RMS px,
+    ambiguity = RMS_best / RMS_other in (0, 1], c2w of the other solution).
+    """
+    K, dist = intr.K, intr.dist_array
+    n, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, img, K, dist, flags=cv2.SOLVEPNP_IPPE)
+    sols = []
+    for r, t in zip(rvecs[:n], tvecs[:n]):
+        r, t = cv2.solvePnPRefineLM(obj, img, K, dist, r.copy(), t.copy())
+        sols.append((_rms(obj, img, r, t, K, dist), r, t))
+    sols.sort(key=lambda s: s[0])
+    best = sols[0]
+    other = sols[1] if len(sols) > 1 else sols[0]
+    ratio = best[0] / other[0] if other[0] > 0 else 1.0
+    return _c2w(best[1], best[2]), best[0], float(ratio), _c2w(other[1], other[2])
+
+
+def pose_frames(dets: Sequence[Detection], board: BoardSpec, intr: Intrinsics,
+                cfg: PoseConfig = PoseConfig()) -> list[FramePose]:
+    """Pose every detection (independently; see :func:`reject_outliers` for the video pass)."""
+    cv_board = board.cv_board()
+    obj_all = board.chessboard_corners()
+    out = []
+    for d in dets:
+        base = dict(index=d.index, time=d.time, name=d.name, n_corners=d.n_corners)
+        if d.n_corners == 0:
+            out.append(FramePose(status="no board", **base))
+        elif d.n_corners < max(cfg.min_corners, 4):
+            out.append(FramePose(status="too few corners", **base))
+        elif cv_board.checkCharucoCornersCollinear(d.ids):
+            out.append(FramePose(status="collinear corners", **base))
+        else:
+            c2w, err, ratio, alt = solve_pose(obj_all[d.ids], d.corners, intr)
+            status = "posed" if err <= cfg.max_reproj_px else "reprojection"
+            out.append(FramePose(status=status, c2w=c2w, reproj_px=err, ambiguity=ratio,
+                                 alt_c2w=alt, **base))
+    return out
+
+
+def _angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
+    c = (np.trace(Ra.T @ Rb) - 1) / 2
+    return math.degrees(math.acos(float(np.clip(c, -1, 1))))
+
+
+def reject_outliers(poses: Sequence[FramePose], cfg: PoseConfig = PoseConfig()) -> list[FramePose]:
+    """The video pass: resolve flipped planar solutions and reject poses that jump.
+
+    Poses move smoothly, so each posed frame is compared with the median of its posed
+    neighbours (``outlier_window`` each side). An ambiguous frame whose other IPPE solution
+    agrees better with the neighbours takes that one; a frame still farther than
+    ``outlier_deg`` / ``outlier_rel`` x distance from its neighbours is marked "outlier".
+    """
+    poses = list(poses)
+    ok = [i for i, p in enumerate(poses) if p.posed]
+    if len(ok) < 3:
+        return poses
+    C = np.stack([poses[i].c2w for i in ok])
+    out = list(poses)
+    w = cfg.outlier_window
+    for j, i in enumerate(ok):
+        nb = [k for k in range(max(0, j - w), min(len(ok), j + w + 1)) if k != j]
+        pos_ref = np.median(C[nb, :3, 3], axis=0)
+        dirs = C[nb, :3, 2]
+        dir_ref = np.median(dirs, axis=0)
+        dir_ref /= np.linalg.norm(dir_ref) + 1e-12
+        # Neighbours' own spread sets the scale of a normal step (fast pans move more).
+        spread = np.median(np.linalg.norm(C[nb, :3, 3] - pos_ref, axis=1))
+        dist = np.linalg.norm(C[j, :3, 3])
+
+        def score(c2w: np.ndarray) -> tuple[float, float]:
+            ang = math.degrees(math.acos(float(np.clip(c2w[:3, 2] @ dir_ref, -1, 1))))
+            return ang, float(np.linalg.norm(c2w[:3, 3] - pos_ref))
+
+        p = poses[i]
+        ang, jump = score(p.c2w)
+        if p.ambiguity > cfg.ambiguity and p.alt_c2w is not None:
+            ang2, jump2 = score(p.alt_c2w)
+            if ang2 + 1e-3 < ang and jump2 <= jump + 1e-3:
+                p = FramePose(p.index, p.time, p.name, p.status, p.alt_c2w, p.n_corners,
+                              p.reproj_px, p.ambiguity, p.c2w)
+                ang, jump = ang2, jump2
+        dir_spread = np.median([math.degrees(math.acos(float(np.clip(d @ dir_ref, -1, 1)))) for d in dirs])
+        if ang > cfg.outlier_deg + 3 * dir_spread or jump > cfg.outlier_rel * dist + 3 * spread:
+            p = FramePose(p.index, p.time, p.name, "outlier", p.c2w, p.n_corners, p.reproj_px,
+                          p.ambiguity, p.alt_c2w)
+        out[i] = p
+    return out
+
+
+def refine_jointly(dets: Sequence[Detection], poses: Sequence[FramePose], board: BoardSpec,
+                   intr: Intrinsics) -> tuple[Intrinsics, list[FramePose], float]:
+    """Bundle adjustment with the board corners as known 3D points: intrinsics and every posed
+    frame's pose refined together (OpenCV's LM in ``calibrateCamera``, started from the current
+    intrinsics and poses). Returns (intrinsics, poses, RMS px)."""
+    by_index = {d.index: d for d in dets}
+    posed = [p for p in poses if p.posed]
+    if len(posed) < 3:
+        return intr, list(poses), float("nan")
+    obj_all = board.chessboard_corners().astype(np.float32)
+    objs = [obj_all[by_index[p.index].ids] for p in posed]
+    imgs = [by_index[p.index].corners.astype(np.float32) for p in posed]
+    rvecs, tvecs = [], []
+    for p in posed:
+        w2c = invert_rigid(p.c2w)
+        rvecs.append(cv2.Rodrigues(w2c[:3, :3])[0])
+        tvecs.append(w2c[:3, 3].reshape(3, 1).copy())
+    flags = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_USE_EXTRINSIC_GUESS
+    rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(
+        objs, imgs, (intr.width, intr.height), intr.K.copy(), intr.dist_array.copy(),
+        rvecs, tvecs, flags=flags)
+    dist = np.ravel(dist)
+    new = Intrinsics(intr.width, intr.height, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]),
+                     float(K[1, 2]), tuple(float(v) for v in dist[:5]))
+    refined = {p.index: (_c2w(r, t), o, i) for p, r, t, o, i in zip(posed, rvecs, tvecs, objs, imgs)}
+    out = []
+    for p in poses:
+        if p.index in refined:
+            c2w, o, i = refined[p.index]
+            w2c = invert_rigid(c2w)
+            err = _rms(o.astype(np.float64), i.astype(np.float64), cv2.Rodrigues(w2c[:3, :3])[0],
+                       w2c[:3, 3], new.K, new.dist_array)
+            p = FramePose(p.index, p.time, p.name, p.status, c2w, p.n_corners, err, p.ambiguity, p.alt_c2w)
+        out.append(p)
+    return new, out, float(rms)
+
+
+# --------------------------------------------------------------------------- whole footage
+@dataclass(frozen=True)
+class PoseRun:
+    """Everything the pose stage found: intrinsics (and where they came from), every sampled
+    frame's pose or the reason it has none, and the blurred frames that were dropped."""
+
+    intrinsics: Intrinsics
+    intrinsics_source: str         # "camera.json", "calibrated (RMS 0.21 px)", "record3d"
+    frames: tuple[FramePose, ...]
+    detections: tuple[Detection, ...]
+    calibration: Calibration | None = None
+    refined_rms: float | None = None
+
+    @property
+    def posed(self) -> list[FramePose]:
+        return [p for p in self.frames if p.posed]
+
+
+def estimate_poses(source: FootageSource, board: BoardSpec, intr: Intrinsics | None = None,
+                   fps: float | None = None, blur_ratio: float = 0.4, refine: bool = False,
+                   workers: int = 1, det_cfg: DetectorConfig = DetectorConfig(),
+                   pose_cfg: PoseConfig = PoseConfig(), min_posed: int = 3,
+                   tick: Callable[[int], None] | None = None, total: Callable[[int], None] | None = None,
+                   intr_source: str = "camera.json") -> PoseRun:
+    """Frames of ``source`` -> metric camera poses in the board frame (see module doc).
+
+    Raises :class:`DbbError` when no frame shows the board (naming the dictionary seen
+    instead) or fewer than ``min_posed`` frames can be posed.
+    """
+    from .io import sample_indices
+
+    info = source.info
+    idx = sample_indices(info.times, fps)
+    if total:
+        total(len(idx))
+    dets = detect_footage(source, idx, board, det_cfg, workers, tick)
+    if not any(d.n_corners for d in dets):
+        probe = [f.image for f in source.read(idx[np.linspace(0, len(idx) - 1, min(3, len(idx))).astype(int)],
+                                              gray=True)]
+        raise DbbError(f"no ChArUco board found in any of {len(dets)} frames of {info.path}: "
+                       + diagnose_no_board(probe, board))
+    blurry = blurry_mask(np.array([d.sharpness for d in dets]), blur_ratio)
+    calib = None
+    if intr is None:
+        calib = calibrate([d for d, b in zip(dets, blurry) if not b], board, info.width, info.height)
+        intr, intr_source = calib.intrinsics, f"calibrated from the footage (RMS {calib.rms:.3f} px)"
+    elif (intr.width, intr.height) != (info.width, info.height):
+        raise DbbError(f"camera.json is for {intr.width}x{intr.height} but the footage is "
+                       f"{info.width}x{info.height}")
+    sharp = [d for d, b in zip(dets, blurry) if not b]
+    poses = reject_outliers(pose_frames(sharp, board, intr, pose_cfg), pose_cfg)
+    refined_rms = None
+    if refine:
+        intr, poses, refined_rms = refine_jointly(sharp, poses, board, intr)
+        poses = reject_outliers(poses, pose_cfg)
+    by_index = {p.index: p for p in poses}
+    frames = tuple(by_index.get(d.index) or FramePose(d.index, d.time, d.name, "blurry",
+                                                      n_corners=d.n_corners) for d in dets)
+    n_posed = sum(p.posed for p in frames)
+    if n_posed < min_posed:
+        why = {}
+        for p in frames:
+            why[p.status] = why.get(p.status, 0) + 1
+        raise DbbError(f"only {n_posed} of {len(frames)} frames could be posed (need {min_posed}): "
+                       + ", ".join(f"{k}: {v}" for k, v in sorted(why.items())))
+    return PoseRun(intr, intr_source, frames, tuple(dets), calib, refined_rms)
