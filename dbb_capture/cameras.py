@@ -152,7 +152,8 @@ def camera_rays(intr: Intrinsics, pixels: np.ndarray) -> np.ndarray:
     pts = np.asarray(pixels, np.float64).reshape(-1, 1, 2)
     if intr.distorted:
         crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
-        xy = cv2.undistortPointsIter(pts, intr.K, intr.dist_array, None, None, crit).reshape(-1, 2)
+        # OpenCV 5 folded undistortPointsIter into undistortPoints (criteria argument).
+        xy = cv2.undistortPoints(pts, intr.K, intr.dist_array, None, None, None, crit).reshape(-1, 2)
     else:
         xy = np.stack([(pts[:, 0, 0] - intr.cx) / intr.fx, (pts[:, 0, 1] - intr.cy) / intr.fy], -1)
     d = np.concatenate([xy, np.ones((xy.shape[0], 1))], axis=1)

@@ -1,0 +1,83 @@
+"""Every command answers --help; bad input ends in one clear line and exit status 2."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from dbb_capture.cli import capture, export, train
+
+GROUPS = {"dbb-capture": capture.main, "dbb-train": train.main, "dbb-export": export.main}
+BIN = Path(sys.executable).parent
+
+
+def _run(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([str(BIN / args[0]), *args[1:]], capture_output=True, text=True, timeout=120)
+
+
+def _all_commands():
+    for name, group in GROUPS.items():
+        yield (name,)
+        for sub in group.commands:
+            yield (name, sub)
+
+
+@pytest.mark.parametrize("cmd", list(_all_commands()), ids=" ".join)
+def test_help(cmd):
+    r = _run(*cmd, "--help")
+    assert r.returncode == 0, r.stderr
+    assert "Usage:" in r.stdout and len(r.stdout.splitlines()) >= 3
+
+
+def _one_clear_line(r: subprocess.CompletedProcess, *words: str) -> None:
+    assert r.returncode == 2, (r.returncode, r.stdout, r.stderr)
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1, r.stderr
+    assert lines[0].startswith("error:")
+    for w in words:
+        assert w in lines[0], (w, lines[0])
+    assert "Traceback" not in r.stderr
+
+
+@pytest.mark.parametrize("args, words", [
+    (("dbb-capture", "nosuchcommand"), ("No such command",)),
+    (("dbb-capture", "synth"), ("Missing argument",)),
+    (("dbb-capture", "synth", "OUT", "--kind", "wobbly"), ("--kind", "wobbly")),
+    (("dbb-capture", "synth", "OUT", "--kind", "static", "--resolution", "big"), ("WIDTHxHEIGHT",)),
+    (("dbb-capture", "synth", "OUT", "--kind", "static", "--dictionary", "DICT_7X7_9"), ("dictionary",)),
+    (("dbb-capture", "synth", "OUT", "--kind", "static", "--distortion", "0.1,x"), ("--distortion",)),
+    (("dbb-capture", "synth", "OUT", "--kind", "static", "--resolution", "641x480"), ("even",)),
+    (("dbb-train", "nosuchcommand"), ("No such command",)),
+    (("dbb-export", "nosuchcommand"), ("No such command",)),
+])
+def test_bad_arguments_exit_2_with_one_line(tmp_path, args, words):
+    args = tuple(str(tmp_path / a) if a == "OUT" else a for a in args)
+    _one_clear_line(_run(*args), *words)
+    assert not any(tmp_path.iterdir()), "nothing may be left behind"
+
+
+def test_existing_output_is_kept(tmp_path):
+    out = tmp_path / "cap"
+    out.mkdir()
+    (out / "keep.txt").write_text("mine")
+    _one_clear_line(_run("dbb-capture", "synth", str(out), "--kind", "static"), "already exists")
+    assert (out / "keep.txt").read_text() == "mine"
+
+
+def test_synth_command_writes_capture(tmp_path):
+    out = tmp_path / "cap"
+    r = _run("dbb-capture", "synth", str(out), "--kind", "dynamic", "--seconds", "0.4", "--fps", "5",
+             "--resolution", "160x120", "--board-squares", "5x4", "--dictionary", "DICT_4X4_50",
+             "--distortion", "-0.1,0.01,0,0,0", "--camera-json")
+    assert r.returncode == 0, r.stderr
+    assert "wrote" in r.stderr and "2 frames" in r.stderr
+    board = json.loads((out / "board.json").read_text())
+    assert board["squares_x"] == 5 and board["dictionary"] == "DICT_4X4_50"
+    cam = json.loads((out / "camera.json").read_text())
+    assert cam["width"] == 160 and cam["dist"][0] == -0.1
+    assert sorted(p.name for p in (out / "ground_truth" / "masks").iterdir()) == ["00000.png", "00001.png"]
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")], "no scratch folder left"
