@@ -93,3 +93,103 @@ def synth(out: Path, kind: str, seconds: float, background_seconds: float | None
                   f"({made.width}x{made.height} @ {made.fps:g} fps), "
                   f"{made.n_background_frames} clean-plate frames, "
                   f"{made.seconds_per_frame * 1000:.0f} ms/frame")
+
+
+def _workers(value: int | None) -> int:
+    import os
+
+    return value if value else max(1, min(2, os.cpu_count() or 1))
+
+
+@main.command()
+@click.argument("input_path", metavar="INPUT", type=click.Path(path_type=Path))
+@click.option("--board", "board_path", type=click.Path(path_type=Path), default=None,
+              help="board.json (default: INPUT/board.json when INPUT is a capture folder).")
+@click.option("-o", "--output", type=click.Path(path_type=Path), required=True,
+              help="camera.json to write.")
+@click.option("--fps", type=click.FloatRange(min=0.01), default=None,
+              help="Sample the footage at this rate (default: every frame).")
+@click.option("--max-views", type=click.IntRange(3, 500), default=40, show_default=True,
+              help="Most board views used (the most diverse are chosen).")
+@click.option("--workers", type=click.IntRange(1, 64), default=None,
+              help="Processes decoding and detecting (default: up to 2).")
+@overwrite_option
+def calibrate(input_path: Path, board_path: Path | None, output: Path, fps: float | None,
+              max_views: int, workers: int | None, overwrite: bool) -> None:
+    """Calibrate camera intrinsics from board footage INPUT.
+
+    INPUT is a video file, a folder of images or RAW files, a Record3D .r3d export, or a
+    capture folder. Writes camera.json with the reprojection RMS as "rms".
+    """
+    from dbb_capture.board import BoardSpec
+    from dbb_capture.errors import DbbError
+    from dbb_capture.io import open_footage
+    from dbb_capture.outputs import write_json
+    from dbb_capture.poses import calibrate_footage
+    from dbb_capture.progress import progress
+
+    if output.exists() and not overwrite:
+        raise DbbError(f"{output} already exists (pass --overwrite to replace it)")
+    if board_path is None:
+        if not (input_path.is_dir() and (input_path / "board.json").is_file()):
+            raise click.BadParameter("pass --board board.json (INPUT holds no board.json)")
+        board_path = input_path / "board.json"
+    board = BoardSpec.load(board_path)
+    source = open_footage(input_path)
+    with progress() as prog:
+        task = prog.add_task("detect board", total=None, info="")
+        cal = calibrate_footage(source, board, fps, max_views, workers=_workers(workers),
+                                tick=lambda n: prog.advance(task, n),
+                                total=lambda n: prog.update(task, total=n))
+    write_json(output, cal.to_json())
+    i = cal.intrinsics
+    console.print(f"[green]wrote[/green] {output}: fx {i.fx:.2f} fy {i.fy:.2f} cx {i.cx:.2f} "
+                  f"cy {i.cy:.2f}, RMS {cal.rms:.3f} px over {len(cal.used)} views"
+                  + (f" ({len(cal.rejected)} outlier views rejected)" if cal.rejected else ""))
+
+
+@main.command()
+@click.argument("capture", type=click.Path(path_type=Path))
+@click.option("-o", "--output", type=click.Path(path_type=Path), required=True,
+              help="Dataset folder to write.")
+@click.option("--board", "board_path", type=click.Path(path_type=Path), default=None,
+              help="board.json (default: CAPTURE/board.json).")
+@click.option("--camera", "camera_path", type=click.Path(path_type=Path), default=None,
+              help="camera.json (default: CAPTURE/camera.json, else calibrate from the footage).")
+@click.option("--footage", type=click.Path(path_type=Path), default=None,
+              help="Video file, frames/RAW folder or .r3d (default: found in CAPTURE).")
+@click.option("--object", "object_path", type=click.Path(path_type=Path), default=None,
+              help="object.json (default: CAPTURE/object.json).")
+@click.option("--background", type=click.Path(path_type=Path), default=None,
+              help="Clean plate video or folder (default: CAPTURE/background.mp4 or background/).")
+@click.option("--fps", type=click.FloatRange(min=0.01), default=None,
+              help="Sample the footage at this rate (default: every frame).")
+@click.option("--blur-ratio", type=click.FloatRange(0, 1), default=0.4, show_default=True,
+              help="Drop frames sharper than less than this fraction of their neighbours' median (0: keep all).")
+@click.option("--refine/--no-refine", default=False, show_default=True,
+              help="Jointly refine intrinsics and all poses (bundle adjustment over board corners).")
+@click.option("--stop-after", type=str, default=None,
+              help="Stop after this stage (poses) to check its output first.")
+@click.option("--workers", type=click.IntRange(1, 64), default=None,
+              help="Processes decoding and detecting (default: up to 2).")
+@overwrite_option
+def preprocess(capture: Path, output: Path, board_path: Path | None, camera_path: Path | None,
+               footage: Path | None, object_path: Path | None, background: Path | None,
+               fps: float | None, blur_ratio: float, refine: bool, stop_after: str | None,
+               workers: int | None, overwrite: bool) -> None:
+    """Turn CAPTURE into a posed dataset in OUTPUT: poses, then (later) mattes and crops.
+
+    The poses stage writes images/ (undistorted frames), transforms.json, camera.json,
+    colmap/sparse/0 and poses/ (report.json, camera_path.png).
+    """
+    from dbb_capture.preprocess import PreprocessConfig, resolve_capture, run_preprocess
+
+    inputs = resolve_capture(capture, board_path, camera_path, footage, object_path, background)
+    cfg = PreprocessConfig(fps=fps, blur_ratio=blur_ratio, refine=refine,
+                           workers=_workers(workers), stop_after=stop_after)
+    res = run_preprocess(inputs, output, cfg, overwrite=overwrite)
+    for note in res.notes:
+        console.print(f"[yellow]note:[/yellow] {note}", soft_wrap=True)
+    posed = res.last.images if res.stages_run and res.stages_run[-1] == "poses" else ()
+    console.print(f"[green]wrote[/green] {res.dataset}: stages {', '.join(res.stages_run)}"
+                  + (f"; {len(posed)} posed frames" if posed else ""))

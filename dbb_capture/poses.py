@@ -467,6 +467,38 @@ def refine_jointly(dets: Sequence[Detection], poses: Sequence[FramePose], board:
 
 
 # --------------------------------------------------------------------------- whole footage
+def detect_sampled(source: FootageSource, board: BoardSpec, fps: float | None = None,
+                   det_cfg: DetectorConfig = DetectorConfig(), workers: int = 1,
+                   tick: Callable[[int], None] | None = None,
+                   total: Callable[[int], None] | None = None) -> list[Detection]:
+    """Detections in the frames of ``source`` resampled to ``fps``.
+
+    Raises :class:`DbbError` when no frame shows the board, naming the dictionary seen instead.
+    """
+    from .io import sample_indices
+
+    idx = sample_indices(source.info.times, fps)
+    if total:
+        total(len(idx))
+    dets = detect_footage(source, idx, board, det_cfg, workers, tick)
+    if not any(d.n_corners for d in dets):
+        probe = [f.image for f in source.read(idx[np.linspace(0, len(idx) - 1, min(3, len(idx))).astype(int)],
+                                              gray=True)]
+        raise DbbError(f"no ChArUco board found in any of {len(dets)} frames of {source.info.path}: "
+                       + diagnose_no_board(probe, board))
+    return dets
+
+
+def calibrate_footage(source: FootageSource, board: BoardSpec, fps: float | None = None,
+                      max_views: int = 40, blur_ratio: float = 0.4, workers: int = 1,
+                      tick: Callable[[int], None] | None = None,
+                      total: Callable[[int], None] | None = None) -> Calibration:
+    """Intrinsics of the camera that filmed ``source`` (sharp frames only)."""
+    dets = detect_sampled(source, board, fps, DetectorConfig(), workers, tick, total)
+    blurry = blurry_mask(np.array([d.sharpness for d in dets]), blur_ratio)
+    return calibrate([d for d, b in zip(dets, blurry) if not b], board, source.info.width,
+                     source.info.height, max_views)
+
 @dataclass(frozen=True)
 class PoseRun:
     """Everything the pose stage found: intrinsics (and where they came from), every sampled
@@ -495,18 +527,8 @@ def estimate_poses(source: FootageSource, board: BoardSpec, intr: Intrinsics | N
     Raises :class:`DbbError` when no frame shows the board (naming the dictionary seen
     instead) or fewer than ``min_posed`` frames can be posed.
     """
-    from .io import sample_indices
-
     info = source.info
-    idx = sample_indices(info.times, fps)
-    if total:
-        total(len(idx))
-    dets = detect_footage(source, idx, board, det_cfg, workers, tick)
-    if not any(d.n_corners for d in dets):
-        probe = [f.image for f in source.read(idx[np.linspace(0, len(idx) - 1, min(3, len(idx))).astype(int)],
-                                              gray=True)]
-        raise DbbError(f"no ChArUco board found in any of {len(dets)} frames of {info.path}: "
-                       + diagnose_no_board(probe, board))
+    dets = detect_sampled(source, board, fps, det_cfg, workers, tick, total)
     blurry = blurry_mask(np.array([d.sharpness for d in dets]), blur_ratio)
     calib = None
     if intr is None:
