@@ -136,7 +136,8 @@ def calibrate(input_path: Path, board_path: Path | None, output: Path, fps: floa
         board_path = input_path / "board.json"
     board = BoardSpec.load(board_path)
     source = open_footage(input_path)
-    with progress() as prog:
+    source.info  # probe now: unreadable footage fails before any progress bar is drawn
+    with progress(transient=True) as prog:
         task = prog.add_task("detect board", total=None, info="")
         cal = calibrate_footage(source, board, fps, max_views, workers=_workers(workers),
                                 tick=lambda n: prog.advance(task, n),

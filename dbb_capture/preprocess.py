@@ -53,6 +53,7 @@ def resolve_capture(capture: Path, board: Path | None = None, camera: Path | Non
     if not capture.is_dir():
         raise InputError(f"capture folder not found: {capture}")
     src = open_footage(footage) if footage else capture_footage(capture)
+    src.info  # probe now: unreadable footage fails before any work starts
     board_spec = BoardSpec.load(board or capture / "board.json")
     cam_path = camera or (capture / "camera.json" if (capture / "camera.json").is_file() else None)
     intr, cam_src = None, "calibrated from the footage"
@@ -112,7 +113,7 @@ class Stage:
 def poses_stage(ctx: StageContext, _previous: Any = None) -> PosesOutput:
     """Footage -> poses; writes images/, transforms.json, camera.json, colmap/sparse/0, poses/."""
     inp, cfg, out = ctx.inputs, ctx.cfg, ctx.out
-    with progress() as prog:
+    with progress(transient=True) as prog:
         task = prog.add_task("detect board", total=None, info="")
         run = estimate_poses(
             inp.footage, inp.board, inp.camera, fps=cfg.fps, blur_ratio=cfg.blur_ratio,
