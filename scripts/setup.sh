@@ -1,0 +1,37 @@
+#!/usr/bin/env bash
+# Create or update the project's virtual environment (.venv) with the toolkit installed.
+# Safe to run again: it only reinstalls when pyproject.toml changed. Used by demo.sh and test.sh.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY=${PYTHON:-python3}
+
+# open3d's import fails without the system library libusb-1.0.
+if ! { ldconfig -p 2>/dev/null || true; } | grep -q 'libusb-1.0.so.0'; then
+  if command -v apt-get >/dev/null 2>&1; then
+    SUDO=""
+    [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+    echo "setup: installing libusb-1.0-0 (needed by open3d)" >&2
+    $SUDO apt-get update -qq >/dev/null && $SUDO apt-get install -y -qq libusb-1.0-0 >/dev/null
+  else
+    echo "setup: warning: install libusb-1.0 with your system's package manager (open3d needs it)" >&2
+  fi
+fi
+
+[ -x .venv/bin/python ] || { echo "setup: creating .venv" >&2; "$PY" -m venv .venv; }
+stamp=.venv/.dbb-setup-stamp
+want=$(sha256sum pyproject.toml | cut -c1-16)
+if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ] || ! .venv/bin/python -c "import dbb_capture" 2>/dev/null; then
+  echo "setup: installing the toolkit and its dependencies into .venv (first time: a few minutes)" >&2
+  .venv/bin/python -m pip install -q --upgrade pip
+  # Bring your own torch (e.g. a CUDA build) by installing it into .venv first. Otherwise
+  # machines without an NVIDIA driver get the CPU build 2.13.0 rather than a multi-GB CUDA one.
+  if ! .venv/bin/python -c "import torch" 2>/dev/null; then
+    if command -v nvidia-smi >/dev/null 2>&1; then
+      .venv/bin/python -m pip install -q torch
+    else
+      .venv/bin/python -m pip install -q "torch==2.13.0" || .venv/bin/python -m pip install -q torch
+    fi
+  fi
+  .venv/bin/python -m pip install -q -e ".[test]"
+  echo "$want" > "$stamp"
+fi
