@@ -24,7 +24,7 @@ from typing import Callable, Sequence
 import cv2
 import numpy as np
 
-from .board import BoardSpec, aruco_dictionary_names
+from .board import BoardSpec
 from .cameras import Intrinsics, invert_rigid, rigid
 from .errors import DbbError
 from .io import Frame, FootageSource, blurry_mask, sharpness, to_gray8
@@ -67,9 +67,10 @@ class BoardDetector:
         self._det = cv2.aruco.CharucoDetector(self._cv_board)
         self._roi: tuple[int, int, int, int] | None = None   # x0, y0, x1, y1 in full-res px
         self._last_n = 0
+        self._scale_hint: float | None = None  # scale that keeps the last frame's markers readable
 
     def reset(self) -> None:
-        self._roi, self._last_n = None, 0
+        self._roi, self._last_n, self._scale_hint = None, 0, None
 
     def _detect_in(self, gray: np.ndarray, roi: tuple[int, int, int, int] | None, scale: float):
         """detectBoard on ``gray`` cropped to ``roi`` and resized by ``scale``; results in full-res px."""
@@ -88,23 +89,37 @@ class BoardDetector:
         return np.asarray(ci).reshape(-1).astype(np.int32), corners, n_markers, mcs
 
     def detect(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
-        """Board corners in a grey frame (H, W) uint8: (ids (N,), corners (N, 2) px, markers found)."""
+        """Board corners in a grey frame (H, W) uint8: (ids (N,), corners (N, 2) px, markers found).
+
+        Tries, in order until one finds about as many corners as the previous frame: the
+        tracked region, the whole reduced image, the whole image at full resolution.
+        """
         H, W = gray.shape
         scale = min(1.0, self.cfg.max_side / max(H, W))
-        ids = corners = None
-        n_markers, mcs = 0, None
-        if self.cfg.track and self._roi is not None:
-            ids, corners, n_markers, mcs = self._detect_in(gray, self._roi, scale)
-            if ids is None or len(ids) < 0.8 * self._last_n:
-                ids = None  # the board moved out of the region or got cut: search everywhere
-        if ids is None:
-            ids, corners, n_markers, mcs = self._detect_in(gray, None, scale)
+        if self._scale_hint is not None:
+            scale = self._scale_hint
+        attempts = ([(self._roi, scale)] if self.cfg.track and self._roi is not None else [])
+        attempts += [(None, scale)] + ([(None, 1.0)] if scale < 1.0 else [])
+        best = (None, None, 0, None)
+        for roi, s in attempts:
+            got = self._detect_in(gray, roi, s)
+            if got[0] is not None and (best[0] is None or len(got[0]) > len(best[0])):
+                best = got
+            elif best[0] is None:
+                best = (None, None, max(best[2], got[2]), None)
+            if best[0] is not None and len(best[0]) >= 0.8 * self._last_n:
+                break
+        ids, corners, n_markers, mcs = best
         if ids is None:
             self.reset()
             return np.zeros(0, np.int32), np.zeros((0, 2)), n_markers
         if self.cfg.refine:
             corners = self._refine(gray, corners, mcs)
         self._last_n = len(ids)
+        # Next frame: the smallest scale that keeps ~4 px per marker bit on the smallest marker.
+        sides = [np.linalg.norm(np.diff(np.vstack([m, m[:1]]), axis=0), axis=1).min() for m in mcs]
+        bits = self._cv_board.getDictionary().markerSize + 2
+        self._scale_hint = float(np.clip(4.0 * bits / max(min(sides), 1.0), 0.25, 1.0)) if sides else None
         pts = np.concatenate([corners] + list(mcs or []))
         lo, hi = pts.min(0), pts.max(0)
         pad = 0.25 * (hi - lo) + 24
@@ -188,30 +203,38 @@ def detect_footage(source: FootageSource, indices: Sequence[int], board: BoardSp
 
 
 # --------------------------------------------------------------------------- diagnosis
+# The smallest dictionary of each family: larger ones of a family begin with the same markers,
+# and boards number their markers from 0, so these name the family quickly.
+# (APRILTAG_36h10, slow to decode and rarely printed, is not probed.)
+_PROBE_DICTIONARIES = ("DICT_4X4_50", "DICT_5X5_50", "DICT_6X6_50", "DICT_7X7_50",
+                       "DICT_ARUCO_ORIGINAL", "DICT_ARUCO_MIP_36h12", "DICT_APRILTAG_16h5",
+                       "DICT_APRILTAG_25h9", "DICT_APRILTAG_36h11")
+
+
+def _family(name: str) -> str:
+    parts = name.split("_")
+    return "_".join(parts[:2]) if parts[2:] and parts[-1].isdigit() else name
+
+
 def diagnose_no_board(frames: Sequence[np.ndarray], board: BoardSpec) -> str:
     """Why no board was found in grey ``frames``: which dictionary's markers they show instead."""
     params = cv2.aruco.DetectorParameters()
+    small = [g if max(g.shape) <= 960 else cv2.resize(g, None, fx=960 / max(g.shape), fy=960 / max(g.shape),
+                                                      interpolation=cv2.INTER_AREA) for g in frames]
+    own = board.dictionary
+    names = [own] + [n for n in _PROBE_DICTIONARIES if _family(n) != _family(own)]
     counts: dict[str, int] = {}
-    for name in aruco_dictionary_names():
+    for name in names:
         det = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)), params)
-        n = 0
-        for g in frames:
-            small = g if max(g.shape) <= 1000 else cv2.resize(g, None, fx=960 / max(g.shape),
-                                                              fy=960 / max(g.shape))
-            _, ids, _ = det.detectMarkers(small)
-            n += 0 if ids is None else len(ids)
-        counts[name] = n
-    own = counts.get(board.dictionary, 0)
-    best = max(counts.items(), key=lambda kv: (kv[1], -len(kv[0]), kv[0] == board.dictionary))
-    if own > 0 and best[1] <= own:
-        return (f"{board.dictionary} markers were found but no corners of a {board.squares_x}x"
+        counts[name] = sum(len(ids) for ids in (det.detectMarkers(g)[1] for g in small) if ids is not None)
+    best = max(names[1:], key=lambda n: counts[n], default=own)
+    if counts[own] > 0 and counts[best] <= counts[own]:
+        return (f"{own} markers were found but no corners of a {board.squares_x}x"
                 f"{board.squares_y} board: check squares_x, squares_y and legacy_pattern in board.json")
-    if best[1] > 0:
-        # Smaller dictionaries are prefixes of larger ones of the same family: name the smallest.
-        family = [k for k, v in counts.items() if v == best[1] and k.split("_")[1] == best[0].split("_")[1]]
-        name = min(family, key=lambda k: int(k.rsplit("_", 1)[1]) if k.rsplit("_", 1)[1].isdigit() else 0)
-        return (f"the board's dictionary does not match: board.json says {board.dictionary} but the "
-                f"frames show {name} markers ({best[1]} found)")
+    if counts.get(best, 0) > 0:
+        sized = f"{_family(best)}_* (e.g. {best})" if _family(best) != best else best
+        return (f"the board's dictionary does not match: board.json says {own} but the frames "
+                f"show {sized} markers ({counts[best]} found)")
     return "no ArUco markers of any dictionary were found (is the board in view and in focus?)"
 
 
@@ -300,7 +323,7 @@ class PoseConfig:
     min_corners: int = 6
     max_reproj_px: float = 1.5
     ambiguity: float = 0.6
-    outlier_window: int = 4
+    outlier_window: int = 3
     outlier_deg: float = 3.0
     outlier_rel: float = 0.05     # position jump, as a fraction of the camera-board distance
 
@@ -384,48 +407,60 @@ def _angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
     return math.degrees(math.acos(float(np.clip(c, -1, 1))))
 
 
+def _local_fit(t: np.ndarray, y: np.ndarray, t0: float) -> np.ndarray:
+    """Least-squares line through ``y`` (K, D) over times ``t`` (K,), evaluated at ``t0`` (D,)."""
+    tc = t - t0
+    V = np.stack([tc, np.ones_like(tc)], axis=1)
+    coef, *_ = np.linalg.lstsq(V, y, rcond=None)
+    return coef[-1]
+
+
 def reject_outliers(poses: Sequence[FramePose], cfg: PoseConfig = PoseConfig()) -> list[FramePose]:
     """The video pass: resolve flipped planar solutions and reject poses that jump.
 
-    Poses move smoothly, so each posed frame is compared with the median of its posed
-    neighbours (``outlier_window`` each side). An ambiguous frame whose other IPPE solution
-    agrees better with the neighbours takes that one; a frame still farther than
-    ``outlier_deg`` / ``outlier_rel`` x distance from its neighbours is marked "outlier".
+    Poses move smoothly, so each posed frame is compared with a polynomial fitted through
+    its posed neighbours (``outlier_window`` each side, itself left out). Worst first, one at
+    a time (so a bad frame cannot spoil its neighbours' verdicts): an ambiguous frame whose
+    other IPPE solution fits the prediction takes it; otherwise a frame farther than
+    ``outlier_deg`` or ``outlier_rel`` x distance, plus twice the neighbours' typical step
+    per frame, is marked "outlier".
     """
-    poses = list(poses)
-    ok = [i for i, p in enumerate(poses) if p.posed]
-    if len(ok) < 3:
-        return poses
-    C = np.stack([poses[i].c2w for i in ok])
     out = list(poses)
+    active = [i for i, p in enumerate(out) if p.posed]
     w = cfg.outlier_window
-    for j, i in enumerate(ok):
-        nb = [k for k in range(max(0, j - w), min(len(ok), j + w + 1)) if k != j]
-        pos_ref = np.median(C[nb, :3, 3], axis=0)
-        dirs = C[nb, :3, 2]
-        dir_ref = np.median(dirs, axis=0)
-        dir_ref /= np.linalg.norm(dir_ref) + 1e-12
-        # Neighbours' own spread sets the scale of a normal step (fast pans move more).
-        spread = np.median(np.linalg.norm(C[nb, :3, 3] - pos_ref, axis=1))
-        dist = np.linalg.norm(C[j, :3, 3])
 
-        def score(c2w: np.ndarray) -> tuple[float, float]:
-            ang = math.degrees(math.acos(float(np.clip(c2w[:3, 2] @ dir_ref, -1, 1))))
-            return ang, float(np.linalg.norm(c2w[:3, 3] - pos_ref))
+    def excess(i: int, c2w: np.ndarray, j: int, C: np.ndarray, T: np.ndarray) -> float:
+        """How far ``c2w`` (frame at position j of the active list) is beyond its threshold (>1: out)."""
+        nb = [k for k in range(max(0, j - w), min(len(T), j + w + 1)) if k != j]
+        y = np.concatenate([C[nb, :3, 3], C[nb, :3, 2]], axis=1)  # position, viewing direction
+        pred = _local_fit(T[nb], y, T[j])
+        dir_ref = pred[3:] / (np.linalg.norm(pred[3:]) + 1e-12)
+        # How far the camera moves per frame here sets the scale of a normal deviation.
+        steps = np.linalg.norm(np.diff(y[:, :3], axis=0), axis=1)
+        turns = np.degrees(np.arccos(np.clip(np.sum(y[1:, 3:] * y[:-1, 3:], axis=1), -1, 1)))
+        ang = math.degrees(math.acos(float(np.clip(c2w[:3, 2] @ dir_ref, -1, 1))))
+        jump = float(np.linalg.norm(c2w[:3, 3] - pred[:3]))
+        limit = cfg.outlier_rel * float(np.linalg.norm(c2w[:3, 3])) + 2 * float(np.median(steps))
+        return max(ang / (cfg.outlier_deg + 2 * float(np.median(turns))), jump / limit)
 
-        p = poses[i]
-        ang, jump = score(p.c2w)
-        if p.ambiguity > cfg.ambiguity and p.alt_c2w is not None:
-            ang2, jump2 = score(p.alt_c2w)
-            if ang2 + 1e-3 < ang and jump2 <= jump + 1e-3:
-                p = FramePose(p.index, p.time, p.name, p.status, p.alt_c2w, p.n_corners,
-                              p.reproj_px, p.ambiguity, p.c2w)
-                ang, jump = ang2, jump2
-        dir_spread = np.median([math.degrees(math.acos(float(np.clip(d @ dir_ref, -1, 1)))) for d in dirs])
-        if ang > cfg.outlier_deg + 3 * dir_spread or jump > cfg.outlier_rel * dist + 3 * spread:
-            p = FramePose(p.index, p.time, p.name, "outlier", p.c2w, p.n_corners, p.reproj_px,
-                          p.ambiguity, p.alt_c2w)
-        out[i] = p
+    for _ in range(len(active)):
+        if len(active) < 4:
+            break
+        C = np.stack([out[i].c2w for i in active])
+        T = np.array([out[i].time for i in active])
+        scores = [excess(i, C[j], j, C, T) for j, i in enumerate(active)]
+        j = int(np.argmax(scores))
+        if scores[j] <= 1.0:
+            break
+        i = active[j]
+        p = out[i]
+        if p.ambiguity > cfg.ambiguity and p.alt_c2w is not None and excess(i, p.alt_c2w, j, C, T) <= 1.0:
+            out[i] = FramePose(p.index, p.time, p.name, p.status, p.alt_c2w, p.n_corners,
+                               p.reproj_px, p.ambiguity, p.c2w)
+        else:
+            out[i] = FramePose(p.index, p.time, p.name, "outlier", p.c2w, p.n_corners, p.reproj_px,
+                               p.ambiguity, p.alt_c2w)
+            active.pop(j)
     return out
 
 

@@ -26,7 +26,7 @@ from .formats import PosedImage, Undistorter, plot_camera_path, pose_report, wri
 from .io import FootageSource, R3dSource, capture_footage, open_footage
 from .outputs import atomic_dir, write_json
 from .poses import DetectorConfig, PoseConfig, PoseRun, estimate_poses
-from .progress import console, progress
+from .progress import progress
 
 PLANNED_STAGES = ("background", "crops")  # named in the docs; not part of this build yet
 
@@ -194,7 +194,6 @@ def run_preprocess(inputs: CaptureInputs, out: Path, cfg: PreprocessConfig = Pre
         ctx = StageContext(inputs, cfg, tmp)
         record: Any = None
         for stage in STAGES:
-            console.print(f"[bold]stage {stage.name}[/bold]")
             record = stage.run(ctx, record)
             ran.append(stage.name)
             if stage.name == cfg.stop_after:

@@ -1,0 +1,234 @@
+"""ChArUco poses, OpenCV-test style: render the board from known poses, detect, compare.
+
+Also the video pass (flip resolution, outlier rejection), dictionary-mismatch diagnosis and
+the whole poses stage through ``dbb-capture preprocess --stop-after poses``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from dbb_capture.board import BoardSpec
+from dbb_capture.cameras import look_at, opencv_from_opengl, project_points
+from dbb_capture.cli.capture import main
+from dbb_capture.errors import DbbError
+from dbb_capture.io import Frame
+from dbb_capture.poses import (BoardDetector, DetectorConfig, FramePose, PoseConfig, detect_frames,
+                               diagnose_no_board, pose_frames, reject_outliers, solve_pose)
+from dbb_capture.synth import Renderer, SynthConfig, make_scene, sensor, write_capture
+
+BOARD = BoardSpec(7, 5, 0.05, 0.0375, "DICT_5X5_100")
+UP = np.array([0.0, 0.0, -1.0])
+# (azimuth, elevation, distance): a sweep of angles and distances around the board centre.
+VIEWS = [(0, 70, 0.45), (35, 50, 0.55), (-50, 40, 0.6), (15, 30, 0.5)]
+
+
+def _rot_err_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
+    return math.degrees(math.acos(float(np.clip((np.trace(Ra.T @ Rb) - 1) / 2, -1, 1))))
+
+
+def _view_c2w(az: float, el: float, d: float, target: np.ndarray) -> np.ndarray:
+    a, e = math.radians(az), math.radians(el)
+    eye = target + d * np.array([math.sin(a) * math.cos(e), -math.cos(a) * math.cos(e), -math.sin(e)])
+    return look_at(eye, target, UP)
+
+
+@pytest.fixture(scope="module")
+def rendered():
+    """Board views (480x360, lens distortion, sensor noise) with their true poses and intrinsics."""
+    cfg = SynthConfig(width=480, height=360, board=BOARD, dist=(-0.12, 0.05, 0.001, -0.001, 0.0))
+    rng = np.random.default_rng(0)
+    scene = make_scene(cfg, rng)
+    intr = cfg.intrinsics()
+    r = Renderer(intr, 2)
+    views = []
+    for az, el, d in VIEWS:
+        c2w = _view_c2w(az, el, d, BOARD.center)
+        img, _ = r.render(scene, c2w, 0.0)
+        views.append((c2w, cv2.cvtColor(sensor(img, 0.01, rng), cv2.COLOR_RGB2GRAY)))
+    return intr, views
+
+
+def test_corners_and_poses_match_ground_truth(rendered):
+    intr, views = rendered
+    for c2w, gray in views:
+        ids, corners, n_markers = BoardDetector(BOARD).detect(gray)
+        assert len(ids) >= 12 and n_markers >= 8
+        truth = project_points(BOARD.chessboard_corners()[ids], c2w, intr)
+        err = np.linalg.norm(corners - truth, axis=1)
+        assert np.median(err) < 0.15 and err.max() < 0.6       # sub-pixel corners
+        est, rms, _, _ = solve_pose(BOARD.chessboard_corners()[ids], corners, intr)
+        assert rms < 0.4
+        assert _rot_err_deg(est[:3, :3], c2w[:3, :3]) < 0.25
+        dist = np.linalg.norm(c2w[:3, 3] - BOARD.center)
+        assert np.linalg.norm(est[:3, 3] - c2w[:3, 3]) < 0.004 * dist   # 4 mm per metre
+        # Projected board axes land within a pixel of the truth (OpenCV's test asks 3 px).
+        axes = np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], [0, 0, -0.1]])
+        assert np.abs(project_points(axes, est, intr) - project_points(axes, c2w, intr)).max() < 1.0
+
+
+def test_fast_path_agrees_with_plain_detection(rendered):
+    """Reduced-image detection with full-resolution refinement and tracking finds the same corners."""
+    intr, views = rendered
+    plain = DetectorConfig(max_side=10_000, track=False, refine=False)
+    fast = DetectorConfig(max_side=320, track=True, refine=True)
+    frames = [Frame(i, i / 10, g, f"{i:05d}") for i, (_, g) in enumerate(views)]
+    frames = frames + frames[::-1]  # revisit views so the tracked region is used and must move
+    a = detect_frames(frames, BOARD, plain)
+    b = detect_frames(frames, BOARD, fast)
+    for da, db, f in zip(a, b, frames):
+        common, ia, ib = np.intersect1d(da.ids, db.ids, return_indices=True)
+        assert len(common) >= 0.8 * len(da.ids)
+        c2w = views[f.index][0]
+        truth = project_points(BOARD.chessboard_corners()[common], c2w, intr)
+        assert np.median(np.linalg.norm(db.corners[ib] - truth, axis=1)) < 0.2
+
+
+def test_dictionary_mismatch_is_named(rendered):
+    _, views = rendered
+    wrong = BoardSpec(7, 5, 0.05, 0.0375, "DICT_6X6_250")
+    grays = [views[1][1]]
+    assert len(BoardDetector(wrong).detect(grays[0])[0]) == 0
+    msg = diagnose_no_board(grays, wrong)
+    assert "DICT_5X5_" in msg and "DICT_6X6_250" in msg
+    wrong_size = BoardSpec(9, 8, 0.05, 0.0375, "DICT_5X5_100")
+    assert "squares_x" in diagnose_no_board(grays, wrong_size) or len(BoardDetector(wrong_size).detect(grays[0])[0])
+
+
+def _smooth_path(n: int = 12) -> list[FramePose]:
+    poses = []
+    for i in range(n):
+        c2w = _view_c2w(-40 + 8 * i, 50, 0.6, BOARD.center)
+        poses.append(FramePose(i, i / 10, f"{i:05d}", "posed", c2w, 20, 0.2, 0.1, c2w))
+    return poses
+
+
+def test_flipped_solution_is_resolved_and_jumps_rejected():
+    poses = _smooth_path()
+    true5 = poses[5].c2w
+    flipped = true5.copy()
+    # The planar ambiguity mirrors the view direction about the line of sight to the board.
+    flipped[:3, :3] = cv2.Rodrigues(np.array([0.0, 0.6, 0.0]))[0] @ true5[:3, :3]
+    p = poses[5]
+    poses[5] = FramePose(p.index, p.time, p.name, "posed", flipped, 20, 0.2, 0.9, true5)
+    jump = poses[8].c2w.copy()
+    jump[:3, 3] += [0.4, 0.0, 0.0]
+    p = poses[8]
+    poses[8] = FramePose(p.index, p.time, p.name, "posed", jump, 20, 0.2, 0.1, jump)
+    out = reject_outliers(poses, PoseConfig())
+    np.testing.assert_allclose(out[5].c2w, true5)
+    assert out[5].posed
+    assert out[8].status == "outlier"
+    assert sum(p.posed for p in out) == len(poses) - 1
+
+
+def test_gates(rendered):
+    intr, views = rendered
+    dets = detect_frames([Frame(0, 0.0, views[1][1], "a")], BOARD)
+    d = dets[0]
+    few = type(d)(1, 0.1, "b", d.ids[:3], d.corners[:3], 2, 1.0)
+    none = type(d)(2, 0.2, "c", d.ids[:0], d.corners[:0], 0, 1.0)
+    bad = type(d)(3, 0.3, "d", d.ids, d.corners + np.random.default_rng(1).normal(0, 3, d.corners.shape), 9, 1.0)
+    out = pose_frames([d, few, none, bad], BOARD, intr, PoseConfig())
+    assert [p.status for p in out] == ["posed", "too few corners", "no board", "reprojection"]
+
+
+# --------------------------------------------------------------------------- the poses stage
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory) -> Path:
+    """A 2 s, 5 fps, 320x240 capture with a coarse board (readable at that size), lens distortion."""
+    out = tmp_path_factory.mktemp("poses") / "cap"
+    board = BoardSpec(5, 4, 0.07, 0.05, "DICT_4X4_50")
+    write_capture(SynthConfig(kind="static", seconds=2.0, fps=5, width=320, height=240, board=board,
+                              background_seconds=None, seed=5, dist=(-0.1, 0.03, 0.0, 0.0, 0.0)), out)
+    return out
+
+
+def test_preprocess_stop_after_poses(capture, tmp_path):
+    ds = tmp_path / "ds"
+    res = CliRunner().invoke(main, ["preprocess", str(capture), "-o", str(ds), "--stop-after", "poses",
+                                    "--camera", str(capture / "ground_truth" / "camera.json")])
+    assert res.exit_code == 0, res.output
+    tf = json.loads((ds / "transforms.json").read_text())
+    gt = json.loads((capture / "ground_truth" / "cameras.json").read_text())["video"]
+    assert tf["camera_model"] == "OPENCV" and tf["k1"] == 0.0 and tf["up"] == [0.0, 0.0, -1.0]
+    assert len(tf["frames"]) >= 7
+    rot = []
+    for fr in tf["frames"]:
+        assert (ds / fr["file_path"]).is_file()
+        i = int(Path(fr["file_path"]).stem)
+        assert fr["time"] == pytest.approx(gt[i]["time"])
+        est = opencv_from_opengl(np.array(fr["transform_matrix"]))
+        true = opencv_from_opengl(np.array(gt[i]["transform_matrix"]))
+        rot.append(_rot_err_deg(est[:3, :3], true[:3, :3]))
+        # Plumbing check: 320x240 frames with 6-12 corners each (accuracy: the rendered sweep above).
+        assert np.linalg.norm(est[:3, 3] - true[:3, 3]) < 0.03
+    assert np.median(rot) < 0.4 and max(rot) < 1.5
+    # The COLMAP model holds the same cameras, with COLMAP's +0.5 px principal point.
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(str(ds / "colmap" / "sparse" / "0"))
+    assert rec.num_images() == len(tf["frames"])
+    cam = rec.cameras[1]
+    assert cam.params[2] == pytest.approx(tf["cx"] + 0.5)
+    im = next(iter(rec.images.values()))
+    fr = next(f for f in tf["frames"] if f["file_path"] == im.name)
+    w2c = np.linalg.inv(opencv_from_opengl(np.array(fr["transform_matrix"])))
+    np.testing.assert_allclose(im.cam_from_world().matrix(), w2c[:3], atol=1e-6)
+    report = json.loads((ds / "poses" / "report.json").read_text())
+    assert report["frames_posed"] == len(tf["frames"]) and report["frames_sampled"] == 10
+    assert all("corners" in f for f in report["frames"])
+    assert (ds / "poses" / "camera_path.png").stat().st_size > 10_000
+    assert json.loads((ds / "preprocess.json").read_text())["stages_run"] == ["poses"]
+
+
+def test_preprocess_calibrates_when_no_camera_json(capture, tmp_path):
+    ds = tmp_path / "ds"
+    res = CliRunner().invoke(main, ["preprocess", str(capture), "-o", str(ds), "--refine"])
+    assert res.exit_code == 0, res.output
+    assert "not available in this build yet" in res.output   # later stages are not faked
+    cam = json.loads((ds / "camera.json").read_text())
+    true = json.loads((capture / "ground_truth" / "camera.json").read_text())
+    # Seven small views calibrate loosely; calibration accuracy is tested in test_calibrate.py.
+    assert abs(cam["fx"] / true["fx"] - 1) < 0.15 and cam["rms"] < 0.5
+    assert "calibrated" in json.loads((ds / "poses" / "report.json").read_text())["intrinsics_source"]
+
+
+@pytest.mark.parametrize("case", ["bad_board", "wrong_dictionary", "unknown_stage", "exists"])
+def test_preprocess_bad_input_exits_2(capture, tmp_path, case):
+    args = ["preprocess", str(capture), "-o", str(tmp_path / "ds")]
+    if case == "bad_board":
+        (tmp_path / "board.json").write_text("{not json")
+        args += ["--board", str(tmp_path / "board.json")]
+    elif case == "wrong_dictionary":
+        (tmp_path / "board.json").write_text(json.dumps(
+            {"squares_x": 5, "squares_y": 4, "square_length": 0.07, "marker_length": 0.05,
+             "dictionary": "DICT_6X6_250"}))
+        args += ["--board", str(tmp_path / "board.json"), "--fps", "2"]
+    elif case == "unknown_stage":
+        args += ["--stop-after", "crops"]
+    else:
+        (tmp_path / "ds").mkdir()
+    res = CliRunner().invoke(main, args)
+    assert res.exit_code == 2
+    lines = [ln for ln in res.output.splitlines() if ln.strip()]
+    assert len(lines) == 1, res.output
+    expect = {"bad_board": "not valid JSON", "wrong_dictionary": "DICT_4X4_",
+              "unknown_stage": "not available", "exists": "already exists"}[case]
+    assert expect in lines[0]
+
+
+def test_too_few_posed_frames_is_an_error(capture):
+    from dbb_capture.io import open_footage
+    from dbb_capture.poses import estimate_poses
+
+    with pytest.raises(DbbError, match="could be posed"):
+        estimate_poses(open_footage(capture), BoardSpec.load(capture / "board.json"), None,
+                       min_posed=1000)
