@@ -497,14 +497,15 @@ def camera_path(cfg: SynthConfig, scene: Scene, times: np.ndarray, rng: np.rando
     a_lo, a_hi = cfg.azimuth_range_deg
     e_lo, e_hi = cfg.elevation_range_deg
     d_lo, d_hi = cfg.distance_range_m
-    # Triangle-ish sweep over azimuth so the whole range is visited in every capture.
-    az_phase = rng.uniform(0, 1)
-    az_sweep = 2 * np.abs(((times / max(T, 1e-6)) * 1.0 + az_phase) % 1.0 - 0.5) * 2 - 1
-    az_sweep = np.sin(az_sweep * np.pi / 2)  # ease at the ends
-    az = np.radians(a_lo + (a_hi - a_lo) * 0.5 * (1 + 0.85 * az_sweep + 0.15 * _smooth_signal(rng, times, T, 3, 3)))
-    # Elevation biased upward: low grazing views (where the board is unreadable) are brief.
-    e01 = 0.5 * (1 + _smooth_signal(rng, times, T, 3, 1.6))
-    el = np.radians(e_lo + (e_hi - e_lo) * e01 ** 0.6)
+    def sweep(cycles: float) -> np.ndarray:
+        # Eased triangle wave in [-1, 1] from a random phase: every capture visits the whole range.
+        tri = 4 * np.abs(((times / max(T, 1e-6)) * cycles + rng.uniform(0, 1)) % 1.0 - 0.5) - 1
+        return np.sin(tri * np.pi / 2)
+
+    az = np.radians(a_lo + (a_hi - a_lo) * 0.5 * (1 + 0.85 * sweep(1.0) + 0.15 * _smooth_signal(rng, times, T, 3, 3)))
+    # Elevation biased upward: grazing views (where the board is unreadable) stay brief.
+    e01 = np.clip(0.5 * (1 + 0.93 * sweep(1.4) + 0.07 * _smooth_signal(rng, times, T, 3, 2)), 0, 1)
+    el = np.radians(e_lo + (e_hi - e_lo) * e01 ** 0.5)
     dist = d_lo + (d_hi - d_lo) * 0.5 * (1 + _smooth_signal(rng, times, T, 3, 1.3))
     roll = np.radians(cfg.roll_deg) * _smooth_signal(rng, times, T, 3, 4.0)
     jitter = 0.002 * np.stack([_smooth_signal(rng, times, 0.7, 3) for _ in range(3)], -1)
