@@ -55,6 +55,8 @@ class DetectorConfig:
     max_side: int = 960
     track: bool = True
     refine: bool = True       # re-refine corners at full resolution (cornerSubPix)
+    win_frac: float = 0.5     # refinement half-window, as a fraction of the square's white margin
+    win_max: int = 6
 
 
 class BoardDetector:
@@ -100,11 +102,11 @@ class BoardDetector:
             scale = self._scale_hint
         attempts = ([(self._roi, scale)] if self.cfg.track and self._roi is not None else [])
         attempts += [(None, scale)] + ([(None, 1.0)] if scale < 1.0 else [])
-        best = (None, None, 0, None)
+        best, used_scale = (None, None, 0, None), 1.0
         for roi, s in attempts:
             got = self._detect_in(gray, roi, s)
             if got[0] is not None and (best[0] is None or len(got[0]) > len(best[0])):
-                best = got
+                best, used_scale = got, s
             elif best[0] is None:
                 best = (None, None, max(best[2], got[2]), None)
             if best[0] is not None and len(best[0]) >= 0.8 * self._last_n:
@@ -113,8 +115,9 @@ class BoardDetector:
         if ids is None:
             self.reset()
             return np.zeros(0, np.int32), np.zeros((0, 2)), n_markers
-        if self.cfg.refine:
-            corners = self._refine(gray, corners, mcs)
+        if self.cfg.refine and used_scale < 1.0:
+            # detectBoard refined them in the reduced image; sharpen them at full resolution.
+            corners = self._refine(gray, corners, mcs, used_scale)
         self._last_n = len(ids)
         # Next frame: the smallest scale that keeps ~4 px per marker bit on the smallest marker.
         sides = [np.linalg.norm(np.diff(np.vstack([m, m[:1]]), axis=0), axis=1).min() for m in mcs]
@@ -127,19 +130,19 @@ class BoardDetector:
                      int(min(W, hi[0] + pad[0] + 1)), int(min(H, hi[1] + pad[1] + 1)))
         return ids, corners, n_markers
 
-    def _refine(self, gray: np.ndarray, corners: np.ndarray, marker_corners) -> np.ndarray:
+    def _refine(self, gray: np.ndarray, corners: np.ndarray, marker_corners, scale: float) -> np.ndarray:
         """cornerSubPix at full resolution, with a window that stays inside the white margin
         between the saddle point and the nearest marker edge."""
         side = np.median([np.linalg.norm(np.diff(np.vstack([m, m[:1]]), axis=0), axis=1).mean()
                           for m in marker_corners]) if marker_corners else 0.0
         margin_px = side * (self.board.square_length - self.board.marker_length) / (2 * self.board.marker_length)
-        half = int(np.clip(math.floor(0.8 * margin_px), 2, 12))
+        half = int(np.clip(math.floor(self.cfg.win_frac * margin_px), 2, self.cfg.win_max))
         pts = corners.astype(np.float32).reshape(-1, 1, 2)
         crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.005)
         refined = cv2.cornerSubPix(gray, pts.copy(), (half, half), (-1, -1), crit).reshape(-1, 2)
         # A corner that wanders farther than the reduced image's pixel was pulled off by clutter.
         moved = np.linalg.norm(refined - corners, axis=1)
-        max_move = max(1.5, 1.0 / min(1.0, self.cfg.max_side / max(gray.shape)))
+        max_move = max(1.5, 1.0 / scale)
         return np.where((moved < max_move)[:, None], refined.astype(np.float64), corners)
 
 

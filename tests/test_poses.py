@@ -78,7 +78,7 @@ def test_fast_path_agrees_with_plain_detection(rendered):
     """Reduced-image detection with full-resolution refinement and tracking finds the same corners."""
     intr, views = rendered
     plain = DetectorConfig(max_side=10_000, track=False, refine=False)
-    fast = DetectorConfig(max_side=320, track=True, refine=True)
+    fast = DetectorConfig(max_side=240, track=True, refine=True)
     frames = [Frame(i, i / 10, g, f"{i:05d}") for i, (_, g) in enumerate(views)]
     frames = frames + frames[::-1]  # revisit views so the tracked region is used and must move
     a = detect_frames(frames, BOARD, plain)

@@ -1,0 +1,114 @@
+"""Calibration: OpenCV's real ChArUco photos against OpenCV's own result, synthetic views with
+a known camera (and a corrupted view to reject), and the command's bad-input cases."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from conftest import shared_data
+from dbb_capture.board import BoardSpec
+from dbb_capture.cameras import Intrinsics, look_at, project_points
+from dbb_capture.cli.capture import main
+from dbb_capture.io import Frame
+from dbb_capture.poses import Detection, calibrate, detect_frames, pose_frames
+
+REAL_BOARD = {"squares_x": 5, "squares_y": 7, "square_length": 0.04, "marker_length": 0.02,
+              "dictionary": "DICT_6X6_250"}
+
+
+@pytest.fixture()
+def real_photos(tmp_path) -> Path:
+    """img_00..03.jpg linked into a folder of their own, beside a board.json."""
+    src = shared_data("charuco_opencv")
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i in range(4):
+        (photos / f"img_0{i}.jpg").symlink_to((src / f"img_0{i}.jpg").resolve())
+    (tmp_path / "board.json").write_text(json.dumps(REAL_BOARD))
+    return photos
+
+
+def _reference() -> tuple[np.ndarray, np.ndarray]:
+    fs = cv2.FileStorage(str(shared_data("charuco_opencv", "tutorial_camera_charuco.yml")),
+                         cv2.FILE_STORAGE_READ)
+    return fs.getNode("camera_matrix").mat(), fs.getNode("distortion_coefficients").mat().ravel()
+
+
+def test_real_photos_match_opencv_calibration(real_photos, tmp_path):
+    out = tmp_path / "camera.json"
+    res = CliRunner().invoke(main, ["calibrate", str(real_photos), "--board",
+                                    str(tmp_path / "board.json"), "-o", str(out)])
+    assert res.exit_code == 0, res.output
+    cam = json.loads(out.read_text())
+    K_ref, _ = _reference()
+    assert abs(cam["fx"] / K_ref[0, 0] - 1) < 0.015
+    assert abs(cam["fy"] / K_ref[1, 1] - 1) < 0.015
+    assert cam["rms"] <= 0.3 and (cam["width"], cam["height"]) == (640, 480)
+    # The occluded photo (a hand over the board) is still posed with these intrinsics.
+    board = BoardSpec.from_json(REAL_BOARD)
+    img = cv2.imread(str(shared_data("charuco_opencv", "chocclusion_original.jpg")), cv2.IMREAD_GRAYSCALE)
+    dets = detect_frames([Frame(0, 0.0, img, "occluded")], board)
+    pose = pose_frames(dets, board, Intrinsics.from_json(cam))[0]
+    assert pose.posed and pose.n_corners >= 10 and pose.reproj_px < 1.0
+    assert pose.n_corners < len(board.chessboard_corners())   # part of the board really is hidden
+
+
+def _synthetic_detections(intr: Intrinsics, board: BoardSpec, n: int = 10, noise_px: float = 0.1):
+    """Board corners projected from ``n`` known poses (exact projection plus pixel noise)."""
+    rng = np.random.default_rng(7)
+    obj = board.chessboard_corners()
+    dets = []
+    for i in range(n):
+        a, e = math.radians(-60 + 120 * i / (n - 1)), math.radians(35 + 35 * (i % 3) / 2)
+        d = 0.45 + 0.1 * (i % 2)
+        eye = board.center + d * np.array([math.sin(a) * math.cos(e), -math.cos(a) * math.cos(e), -math.sin(e)])
+        target = board.center + rng.normal(0, 0.05, 3) * [1, 1, 0]
+        c2w = look_at(eye, target, np.array([0.0, 0.0, -1.0]))
+        uv = project_points(obj, c2w, intr) + rng.normal(0, noise_px, (len(obj), 2))
+        inside = (uv[:, 0] > 0) & (uv[:, 0] < intr.width - 1) & (uv[:, 1] > 0) & (uv[:, 1] < intr.height - 1)
+        ids = np.flatnonzero(inside).astype(np.int32)
+        dets.append(Detection(i, i / 10, f"{i:05d}", ids, uv[ids], 17, 100.0))
+    return dets
+
+
+def test_synthetic_calibration_recovers_camera_and_rejects_bad_view():
+    board = BoardSpec(7, 5, 0.05, 0.0375, "DICT_5X5_100")
+    truth = Intrinsics(1280, 960, 1100.0, 1100.0, 641.3, 478.2, (-0.15, 0.08, 0.001, -0.0005, 0.0))
+    dets = _synthetic_detections(truth, board)
+    d = dets[4]
+    # A view whose corners are mislabelled by one id: a plausible detection gone wrong.
+    dets[4] = Detection(d.index, d.time, d.name, d.ids, np.roll(d.corners, 1, axis=0), 17, 100.0)
+    cal = calibrate(dets, board, truth.width, truth.height)
+    assert cal.rejected == ("00004",)
+    i = cal.intrinsics
+    assert abs(i.fx / truth.fx - 1) < 0.005 and abs(i.fy / truth.fy - 1) < 0.005
+    assert abs(i.cx - truth.cx) < 3 and abs(i.cy - truth.cy) < 3
+    assert abs(i.dist[0] - truth.dist[0]) < 0.02
+    assert 0.05 < cal.rms < 0.2   # the injected pixel noise, not more
+    # Fewer diverse views when asked: the selection spreads over the sweep.
+    few = calibrate(dets[:4] + dets[5:], board, truth.width, truth.height, max_views=5)
+    assert len(few.used) == 5 and abs(few.intrinsics.fx / truth.fx - 1) < 0.02
+
+
+@pytest.mark.parametrize("case", ["no_board_flag", "wrong_dictionary", "bad_board_json"])
+def test_calibrate_bad_input_exits_2(real_photos, tmp_path, case):
+    args = ["calibrate", str(real_photos), "-o", str(tmp_path / "cam.json")]
+    expect = {"no_board_flag": "--board", "wrong_dictionary": "DICT_6X6_",
+              "bad_board_json": "missing or invalid board field"}[case]
+    if case == "wrong_dictionary":
+        (tmp_path / "b4.json").write_text(json.dumps({**REAL_BOARD, "dictionary": "DICT_4X4_50"}))
+        args += ["--board", str(tmp_path / "b4.json")]
+    elif case == "bad_board_json":
+        (tmp_path / "bad.json").write_text(json.dumps({"squares_x": 5}))
+        args += ["--board", str(tmp_path / "bad.json")]
+    res = CliRunner().invoke(main, args)
+    assert res.exit_code == 2
+    lines = [ln for ln in res.output.splitlines() if ln.strip()]
+    assert len(lines) == 1 and expect in lines[0], res.output
