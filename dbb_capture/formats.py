@@ -100,9 +100,9 @@ def pose_report(run: PoseRun, board: BoardSpec) -> dict:
             row["ambiguity"] = round(float(p.ambiguity), 4)
             row["distance_m"] = round(float(np.linalg.norm(p.c2w[:3, 3] - board.center)), 5)
         frames.append(row)
-    errs = np.array([p.reproj_px for p in run.posed])
+    errs = np.array([p.reproj_px for p in run.posed if p.status == "posed"])
     report = {"intrinsics": run.intrinsics.to_json(), "intrinsics_source": run.intrinsics_source,
-              "frames_sampled": len(run.frames), "frames_posed": len(errs), "by_status": counts,
+              "frames_sampled": len(run.frames), "frames_posed": len(run.posed), "by_status": counts,
               "reprojection_px": {"median": round(float(np.median(errs)), 4),
                                   "p95": round(float(np.percentile(errs, 95)), 4),
                                   "max": round(float(errs.max()), 4)} if len(errs) else None,
@@ -129,7 +129,7 @@ def plot_camera_path(run: PoseRun, board: BoardSpec, path: Path) -> None:
     bw, bh = board.size_m
     outline = np.array([[0, 0], [bw, 0], [bw, bh], [0, bh], [0, 0]])
     fig, axes = plt.subplots(1, 2, figsize=(11, 5))
-    scale = 0.08 * max(np.ptp(C, axis=0).max() if len(C) else 1.0, bw)
+    scale = 0.2 * max(np.ptp(C, axis=0).max() if len(C) else 1.0, bw)
     for ax, (a, b), title in ((axes[0], (0, 1), "top view (x, y)"), (axes[1], (0, 2), "side view (x, z)")):
         if b == 1:
             ax.plot(outline[:, 0], outline[:, 1], "k-", lw=2, label="board")

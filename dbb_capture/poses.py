@@ -335,8 +335,9 @@ class PoseConfig:
 class FramePose:
     """A frame's camera: ``c2w`` (4, 4) OpenCV board-from-camera (metres), or None with ``status``.
 
-    ``status``: "posed", or why not ("no board", "too few corners", "collinear corners",
-    "reprojection", "outlier", "blurry").
+    ``status``: "posed", "arkit" (board hidden: the device's own pose, aligned to the board),
+    or why there is none ("no board", "too few corners", "collinear corners", "reprojection",
+    "outlier", "blurry").
     """
 
     index: int
@@ -351,7 +352,8 @@ class FramePose:
 
     @property
     def posed(self) -> bool:
-        return self.status == "posed"
+        """Has a pose to use: from the board, or ("arkit") from the device's tracking."""
+        return self.status in ("posed", "arkit")
 
 
 def _rms(obj: np.ndarray, img: np.ndarray, rvec, tvec, K, dist) -> float:
@@ -467,6 +469,27 @@ def reject_outliers(poses: Sequence[FramePose], cfg: PoseConfig = PoseConfig()) 
     return out
 
 
+def fill_from_device(poses: Sequence[FramePose], device_c2w: np.ndarray, min_aligned: int = 3) -> list[FramePose]:
+    """Frames without a board pose take the device's own pose (Record3D's ARKit track,
+    OpenCV camera axes, (N, 4, 4) indexed by frame), mapped into the board frame by the rigid
+    transform that best aligns the device track with the board poses of the posed frames."""
+    board_posed = [p for p in poses if p.status == "posed" and p.index < len(device_c2w)]
+    if len(board_posed) < min_aligned:
+        return list(poses)
+    # board_from_device = c2w_board @ inv(c2w_device), averaged: rotation by SVD, translation by median.
+    Ts = np.stack([p.c2w @ invert_rigid(device_c2w[p.index]) for p in board_posed])
+    U, _, Vt = np.linalg.svd(Ts[:, :3, :3].sum(0))
+    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    board_from_device = rigid(R, np.median(Ts[:, :3, 3], axis=0))
+    out = []
+    for p in poses:
+        if p.status in ("no board", "too few corners", "collinear corners") and p.index < len(device_c2w):
+            p = FramePose(p.index, p.time, p.name, "arkit", board_from_device @ device_c2w[p.index],
+                          p.n_corners)
+        out.append(p)
+    return out
+
+
 def refine_jointly(dets: Sequence[Detection], poses: Sequence[FramePose], board: BoardSpec,
                    intr: Intrinsics) -> tuple[Intrinsics, list[FramePose], float]:
     """Bundle adjustment with the board corners as known 3D points: intrinsics and every posed
@@ -559,9 +582,10 @@ def estimate_poses(source: FootageSource, board: BoardSpec, intr: Intrinsics | N
                    workers: int = 1, det_cfg: DetectorConfig = DetectorConfig(),
                    pose_cfg: PoseConfig = PoseConfig(), min_posed: int = 3,
                    tick: Callable[[int], None] | None = None, total: Callable[[int], None] | None = None,
-                   intr_source: str = "camera.json") -> PoseRun:
+                   intr_source: str = "camera.json", device_c2w: np.ndarray | None = None) -> PoseRun:
     """Frames of ``source`` -> metric camera poses in the board frame (see module doc).
 
+    ``device_c2w`` (N, 4, 4): the device's own poses (Record3D), used where the board is hidden.
     Raises :class:`DbbError` when no frame shows the board (naming the dictionary seen
     instead) or fewer than ``min_posed`` frames can be posed.
     """
@@ -581,10 +605,12 @@ def estimate_poses(source: FootageSource, board: BoardSpec, intr: Intrinsics | N
     if refine:
         intr, poses, refined_rms = refine_jointly(sharp, poses, board, intr)
         poses = reject_outliers(poses, pose_cfg)
+    if device_c2w is not None:
+        poses = fill_from_device(poses, device_c2w)
     by_index = {p.index: p for p in poses}
     frames = tuple(by_index.get(d.index) or FramePose(d.index, d.time, d.name, "blurry",
                                                       n_corners=d.n_corners) for d in dets)
-    n_posed = sum(p.posed for p in frames)
+    n_posed = sum(p.status == "posed" for p in frames)
     if n_posed < min_posed:
         why = {}
         for p in frames:

@@ -119,7 +119,8 @@ def poses_stage(ctx: StageContext, _previous: Any = None) -> PosesOutput:
             inp.footage, inp.board, inp.camera, fps=cfg.fps, blur_ratio=cfg.blur_ratio,
             refine=cfg.refine, workers=cfg.workers, det_cfg=cfg.detector, pose_cfg=cfg.gates,
             tick=lambda n: prog.advance(task, n), total=lambda n: prog.update(task, total=n),
-            intr_source=inp.camera_source)
+            intr_source=inp.camera_source,
+            device_c2w=inp.footage.arkit_c2w_opencv() if isinstance(inp.footage, R3dSource) else None)
         posed = run.posed
         undistort = Undistorter(run.intrinsics)
         (out / "images").mkdir()

@@ -232,3 +232,19 @@ def test_too_few_posed_frames_is_an_error(capture):
     with pytest.raises(DbbError, match="could be posed"):
         estimate_poses(open_footage(capture), BoardSpec.load(capture / "board.json"), None,
                        min_posed=1000)
+
+
+def test_device_poses_fill_frames_without_board():
+    """Record3D: where the board is hidden, the ARKit pose mapped into the board frame is used."""
+    from dbb_capture.cameras import invert_rigid, rigid
+    from dbb_capture.poses import fill_from_device
+
+    poses = _smooth_path(8)
+    board_from_device = rigid(cv2.Rodrigues(np.array([0.3, -1.2, 0.5]))[0], [1.0, -2.0, 0.5])
+    device = np.stack([invert_rigid(board_from_device) @ p.c2w for p in poses])
+    hidden = poses[6]
+    poses[6] = FramePose(hidden.index, hidden.time, hidden.name, "no board")
+    out = fill_from_device(poses, device)
+    assert out[6].status == "arkit" and out[6].posed
+    np.testing.assert_allclose(out[6].c2w, hidden.c2w, atol=1e-9)
+    assert [p.status for p in out].count("posed") == 7
