@@ -1,0 +1,174 @@
+"""Distance-normalized, upright, object-centred crops; each crop is its own pinhole camera.
+
+A crop camera shares the real camera's centre but is rotated to look straight at the object
+centre, with its image "up" along the scene's up (the board normal on the cameras' side), so
+camera roll is cancelled. Its focal length makes the object's bounding sphere project to a
+circle of the same size in every crop: for a sphere of radius r seen from distance D along the
+optical axis the silhouette is a circle of radius f * tan(asin(r / D)) pixels, so
+
+    f_crop = fill * size / 2 / tan(asin(r / D)).
+
+In the source frame that window's side is therefore inversely proportional to the distance
+(~ r / D), as the thesis asks (6.1.3). A rotation about the camera centre is a homography, so
+the crop is exact for any scene; lens distortion is handled by projecting the crop's rays
+through the source camera's distortion model, in one resampling.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .cameras import Intrinsics, invert_rigid, look_at, pixel_grid
+from .errors import DbbError
+
+
+@dataclass(frozen=True)
+class Viewpoint:
+    """Where the camera stands relative to the object centre (degrees, metres).
+
+    Elevation is measured from the board plane toward ``up``; azimuth is right-handed about
+    ``up`` from the board's x axis (counter-clockwise seen from above: toward -y when up is -z).
+    """
+
+    azimuth_deg: float
+    elevation_deg: float
+    distance_m: float
+
+    def to_json(self) -> dict:
+        return {"azimuth_deg": round(self.azimuth_deg, 4), "elevation_deg": round(self.elevation_deg, 4),
+                "distance_m": round(self.distance_m, 6)}
+
+    def unit_vector(self) -> np.ndarray:
+        """Direction from the object to the camera in the (x_ref, y_ref, up) frame, (3,)."""
+        a, e = math.radians(self.azimuth_deg), math.radians(self.elevation_deg)
+        return np.array([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)])
+
+
+@dataclass(frozen=True)
+class CropCamera:
+    """A crop's pinhole camera: intrinsics (no distortion) and OpenCV camera-to-world (4, 4)."""
+
+    intr: Intrinsics
+    c2w: np.ndarray
+    viewpoint: Viewpoint
+    window_px: float          # side of the crop window measured in source pixels (at the centre)
+
+
+def up_from_cameras(c2w: np.ndarray) -> np.ndarray:
+    """The board normal on the side where the cameras are: -z or +z of the board frame (3,).
+
+    ``c2w``: OpenCV camera-to-world poses (N, 4, 4) in the board frame. Derived from the data:
+    most camera centres lie on one side of the board plane z = 0.
+    """
+    z = np.asarray(c2w)[:, 2, 3]
+    if len(z) == 0:
+        raise DbbError("no posed cameras to tell which side of the board is up")
+    return np.array([0.0, 0.0, -1.0 if np.median(z) < 0 else 1.0])
+
+
+def viewpoint(eye: np.ndarray, center: np.ndarray, up: np.ndarray) -> Viewpoint:
+    """Azimuth, elevation and distance of a camera centre ``eye`` (3,) from ``center`` (3,)."""
+    v = np.asarray(eye, float) - np.asarray(center, float)
+    dist = float(np.linalg.norm(v))
+    x_ref = np.array([1.0, 0.0, 0.0])
+    y_ref = np.cross(up, x_ref)  # right-handed about up
+    el = math.degrees(math.asin(np.clip(v @ up / dist, -1, 1)))
+    az = math.degrees(math.atan2(v @ y_ref, v @ x_ref))
+    return Viewpoint(az, el, dist)
+
+
+def crop_camera(c2w: np.ndarray, src: Intrinsics, center: np.ndarray, radius: float, up: np.ndarray,
+                size: int = 64, fill: float = 0.9) -> CropCamera:
+    """The crop camera of a frame taken by ``c2w`` (4, 4, OpenCV) with intrinsics ``src``.
+
+    ``center`` (3,), ``radius`` (m): the object's bounding sphere in the board frame; ``size``:
+    crop side in pixels; ``fill``: fraction of the side the sphere's projected diameter takes.
+    """
+    eye = c2w[:3, 3]
+    D = float(np.linalg.norm(eye - center))
+    if D <= radius * 1.001:
+        raise DbbError(f"camera is inside the object's bounding sphere (distance {D:.3f} m, radius {radius:.3f} m)")
+    half_angle = math.asin(radius / D)
+    f = fill * size / 2 / math.tan(half_angle)
+    # The object's up must not be parallel to the viewing direction (a view from straight above).
+    view = (center - eye) / D
+    if abs(view @ up) > 0.9995:
+        raise DbbError("camera looks straight down the up axis: the crop's up is undefined")
+    crop_c2w = look_at(eye, center, up)
+    c = (size - 1) / 2
+    intr = Intrinsics(size, size, f, f, c, c)
+    f_src = 0.5 * (src.fx + src.fy)
+    return CropCamera(intr, crop_c2w, viewpoint(eye, center, up), window_px=size * f_src / f)
+
+
+def crop_maps(cam: CropCamera, src: Intrinsics, src_c2w: np.ndarray, supersample: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Source-pixel coordinates (map_x, map_y), each (size*s, size*s) float32, for ``cv2.remap``.
+
+    Each crop (sub)pixel's ray is turned into the source camera and projected through its lens
+    model (distortion included).
+    """
+    n = cam.intr.width * supersample
+    grid = pixel_grid(cam.intr.width, cam.intr.height, supersample).reshape(-1, 2)
+    rays = np.stack([(grid[:, 0] - cam.intr.cx) / cam.intr.fx, (grid[:, 1] - cam.intr.cy) / cam.intr.fy,
+                     np.ones(len(grid))], 1)
+    R = invert_rigid(src_c2w)[:3, :3] @ cam.c2w[:3, :3]     # crop camera -> source camera rotation
+    d = rays @ R.T
+    behind = d[:, 2] <= 1e-9
+    d[behind, 2] = 1e-9
+    uv, _ = cv2.projectPoints(d.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), src.K, src.dist_array)
+    uv = uv.reshape(-1, 2)
+    uv[behind] = -1e6
+    return uv[:, 0].reshape(n, n).astype(np.float32), uv[:, 1].reshape(n, n).astype(np.float32)
+
+
+def cut_crop(image: np.ndarray, cam: CropCamera, src: Intrinsics, src_c2w: np.ndarray) -> tuple[np.ndarray, bool]:
+    """Resample ``image`` (H, W, C) uint8 into the crop (size, size, C); also whether it touched the border.
+
+    Pixels outside the source frame are zero (transparent for RGBA). When the crop shrinks the
+    image, it is rendered at ``s`` samples per pixel and box-filtered, so it does not alias.
+    """
+    s = max(1, min(8, int(math.ceil(cam.window_px / cam.intr.width))))
+    mx, my = crop_maps(cam, src, src_c2w, s)
+    h, w = image.shape[:2]
+    touched = bool((mx < -0.5).any() or (my < -0.5).any() or (mx > w - 0.5).any() or (my > h - 0.5).any())
+    out = cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    if s > 1:
+        size = cam.intr.width
+        out = cv2.resize(out, (size, size), interpolation=cv2.INTER_AREA)
+    if out.ndim == 2 and image.ndim == 3:
+        out = out[..., None]
+    return out, touched
+
+
+def split_by_time(times: np.ndarray, test_fraction: float = 0.2) -> np.ndarray:
+    """Split labels (N,) of str: the last ``test_fraction`` of the capture's duration is ``test``."""
+    times = np.asarray(times, float)
+    if len(times) == 0:
+        return np.array([], dtype=object)
+    t_cut = times.min() + (1 - test_fraction) * (times.max() - times.min())
+    return np.where(times > t_cut if test_fraction > 0 else np.zeros(len(times), bool), "test", "train")
+
+
+def sequence_windows(times: np.ndarray, splits: np.ndarray, length: int = 11,
+                     max_gap_factor: float = 1.5, stride: int = 1) -> list[tuple[int, str]]:
+    """Start indices of windows of ``length`` consecutive frames (1 context + length-1 predicted).
+
+    A window never crosses a split boundary or a gap (a frame skipped for blur or for no board,
+    seen as a time step over ``max_gap_factor`` times the median step). Returns [(start, split)].
+    """
+    times = np.asarray(times, float)
+    n = len(times)
+    if n < length:
+        return []
+    step = float(np.median(np.diff(times))) if n > 1 else 1.0
+    broken = np.zeros(n, bool)  # broken[i]: frame i does not follow frame i-1
+    broken[1:] = (np.diff(times) > max_gap_factor * step) | (splits[1:] != splits[:-1])
+    out = []
+    for s in range(0, n - length + 1, stride):
+        if not broken[s + 1:s + length].any():
+            out.append((s, str(splits[s])))
+    return out
