@@ -1,0 +1,670 @@
+"""A sparse voxel radiance field (density + spherical-harmonic colour), optimized directly.
+
+Plenoxels/DVGO style, in plain PyTorch: values live on the points of a regular lattice
+inside the object's bounding cube; a query interpolates the 8 surrounding lattice points
+trilinearly. Only *active* lattice points own parameters (``index`` maps the dense lattice
+to rows of compact tables), so pruned empty space costs neither memory nor time, and the
+dense ``occupancy`` of active points lets rays skip empty space.
+
+Coordinates. ``object`` mode: normalized ``x = (p - center) / radius``; the lattice spans
+the cube [-1, 1]^3 around the object sphere. ``scene`` mode (unbounded, e.g. a clean
+plate): the same, then contracted (mip-NeRF 360): ``|x| <= 1`` unchanged, beyond it
+``(2 - 1/|x|) x/|x|``, so the lattice spans [-2, 2]^3 and holds everything to infinity.
+
+Units. Density ``sigma`` is per normalized unit (one object radius); world density is
+``sigma / radius``. Colour is ``sigmoid(sum_b c_b Y_b(d))`` with the SH basis and sign
+convention of svox/PlenOctrees, so baking is a straight copy (see :mod:`.octree`).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from .datasets import Frame, ObjectVolume, frame_rays, load_rgba, scaled_intrinsics
+from .errors import DbbError
+
+COLOUR_ACTIVATION = "sigmoid"   # what the SH sum goes through; recorded in every baked tree
+
+_C0 = 0.28209479177387814
+_C1 = 0.4886025119029199
+_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792,
+       0.5462742152960396)
+_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
+       -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
+
+
+def sh_basis(degree: int, d: torch.Tensor) -> torch.Tensor:
+    """Real SH basis (..., (degree+1)^2) at unit directions ``d`` (..., 3), svox's convention."""
+    x, y, z = d.unbind(-1)
+    out = [torch.full_like(x, _C0)]
+    if degree >= 1:
+        out += [-_C1 * y, _C1 * z, -_C1 * x]
+    if degree >= 2:
+        xx, yy, zz = x * x, y * y, z * z
+        out += [_C2[0] * x * y, _C2[1] * y * z, _C2[2] * (2 * zz - xx - yy), _C2[3] * x * z,
+                _C2[4] * (xx - yy)]
+    if degree >= 3:
+        out += [_C3[0] * y * (3 * xx - yy), _C3[1] * x * y * z, _C3[2] * y * (4 * zz - xx - yy),
+                _C3[3] * z * (2 * zz - 3 * xx - 3 * yy), _C3[4] * x * (4 * zz - xx - yy),
+                _C3[5] * z * (xx - yy), _C3[6] * x * (xx - 3 * yy)]
+    if degree > 3:
+        raise ValueError("SH degree above 3 is not supported")
+    return torch.stack(out, -1)
+
+
+def contract(x: torch.Tensor) -> torch.Tensor:
+    """mip-NeRF 360 contraction of normalized points (..., 3) into the ball of radius 2."""
+    n = x.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+    return torch.where(n <= 1, x, (2 - 1 / n) * (x / n))
+
+
+@dataclass
+class FieldConfig:
+    """How to build and train a field. Lengths in lattice cells unless stated."""
+
+    mode: str = "object"            # "object" (bounded, RGBA) or "scene" (unbounded, contracted)
+    sh_degree: int = 2
+    res_start: int = 64             # lattice points per axis at the first stage
+    res_max: int = 512              # coarse-to-fine doubles up to this
+    max_points: int = 6_000_000     # never upsample past this many active points (memory, time)
+    step_cells: float = 0.5         # sample spacing along rays
+    batch_rays: int = 4096
+    lr_density: float = 0.1
+    lr_sh: float = 0.03
+    lr_final_ratio: float = 0.1     # learning rates decay exponentially to this fraction
+    tv_density: float = 1e-4        # total-variation weights (mean squared neighbour difference)
+    tv_sh: float = 1e-4
+    tv_points: int = 8192           # lattice points sampled per step for TV
+    prune_alpha: float = 1e-3       # drop points whose one-cell opacity stays below this
+    weight_eps: float = 1e-4        # colour is evaluated only where a sample's weight exceeds this
+    init_alpha: float = 1e-4        # opacity of one step at the start (nearly empty)
+    upsample_at: tuple[float, ...] = (0.15, 0.3, 0.45)   # fraction of the budget per new stage
+    seed: int = 0
+
+    @property
+    def n_basis(self) -> int:
+        return (self.sh_degree + 1) ** 2
+
+    def validate(self) -> None:
+        if self.mode not in ("object", "scene"):
+            raise DbbError(f"field mode must be object or scene, not {self.mode!r}")
+        if not 0 <= self.sh_degree <= 3:
+            raise DbbError("SH degree must be 0..3")
+        if self.res_start < 8 or self.res_max < self.res_start:
+            raise DbbError("need 8 <= res_start <= res_max")
+
+
+def _lattice_lin(i: torch.Tensor, res: int) -> torch.Tensor:
+    """Linear index of integer lattice coordinates (..., 3)."""
+    return (i[..., 0] * res + i[..., 1]) * res + i[..., 2]
+
+
+class RowTable:
+    """A parameter table (N, C) whose gradient is gathered row-wise and updated by lazy Adam.
+
+    Autograd's own paths are slow here: a dense gradient clears the whole table every step and
+    a sparse one sorts millions of indices to coalesce them. Instead the backward pass adds into
+    one persistent buffer and marks the rows it touched; :meth:`adam_step` updates only those.
+    """
+
+    def __init__(self, values: torch.Tensor):
+        self.data = values.contiguous()
+        self.grad = torch.zeros_like(self.data)
+        self.touched = torch.zeros(self.data.shape[0], dtype=torch.bool, device=self.data.device)
+        self.m = torch.zeros_like(self.data)
+        self.v = torch.zeros_like(self.data)
+        self.t = 0
+        # A leaf that requires grad, so autograd calls our backward; it never gets a gradient.
+        self.handle = torch.zeros((), device=self.data.device, requires_grad=True)
+
+    def gather(self, rows: torch.Tensor) -> torch.Tensor:
+        """``data[rows]`` (..., C), differentiable into :attr:`grad`."""
+        return _Gather.apply(self.handle, rows, self)
+
+    def adam_step(self, lr: float, b1: float = 0.9, b2: float = 0.99, eps: float = 1e-8) -> None:
+        """One Adam step on the touched rows; their gradient is cleared."""
+        idx = self.touched.nonzero()[:, 0]
+        if idx.numel() == 0:
+            return
+        self.t += 1
+        g = self.grad[idx]
+        m = self.m[idx].mul_(b1).add_(g, alpha=1 - b1)
+        v = self.v[idx].mul_(b2).addcmul_(g, g, value=1 - b2)
+        self.m[idx] = m
+        self.v[idx] = v
+        step = lr * math.sqrt(1 - b2 ** self.t) / (1 - b1 ** self.t)
+        self.data[idx] -= step * m / (v.sqrt() + eps)
+        self.grad[idx] = 0
+        self.touched[idx] = False
+
+
+class _Gather(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, handle, rows, table):  # noqa: D102 - autograd API
+        ctx.save_for_backward(rows)
+        ctx.table = table
+        return table.data[rows]
+
+    @staticmethod
+    def backward(ctx, g):  # noqa: D102 - autograd API
+        (rows,) = ctx.saved_tensors
+        t = ctx.table
+        flat = rows.reshape(-1)
+        t.grad.index_add_(0, flat, g.reshape(flat.numel(), t.data.shape[1]))
+        t.touched[flat] = True
+        return None, None, None
+
+
+_CORNERS = torch.tensor([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)])
+
+
+class VoxelField:
+    """The field: ``index`` (res^3 lattice -> row or -1), ``density`` (N+1, 1), ``sh`` (N+1, 3*B).
+
+    Row N is a sentinel for inactive lattice points: very negative raw density, zero colour.
+    """
+
+    SENTINEL_RAW = -20.0
+
+    def __init__(self, cfg: FieldConfig, volume: ObjectVolume, res: int, device: torch.device,
+                 active: torch.Tensor | None = None, density: torch.Tensor | None = None,
+                 sh: torch.Tensor | None = None):
+        cfg.validate()
+        self.cfg = cfg
+        self.volume = volume
+        self.device = device
+        self.center = torch.tensor(volume.center, dtype=torch.float32, device=device)
+        self.radius = float(volume.radius)
+        self.span = 1.0 if cfg.mode == "object" else 2.0       # lattice covers [-span, span]^3
+        self.res = int(res)
+        if active is None:
+            active = torch.arange(self.res ** 3, device=device)
+        active = active.to(device=device, dtype=torch.long)
+        n = active.numel()
+        # int32: at 512^3 the dense map alone is half a gigabyte.
+        self.index = torch.full((self.res ** 3,), -1, dtype=torch.int32, device=device)
+        self.index[active] = torch.arange(n, device=device, dtype=torch.int32)
+        self.active = active
+        if density is None:
+            density = torch.zeros(n, 1, device=device)
+        if sh is None:
+            sh = torch.zeros(n, 3 * cfg.n_basis, device=device)
+        self.density = RowTable(torch.cat(
+            [density.to(device).float().reshape(n, 1), torch.full((1, 1), self.SENTINEL_RAW, device=device)]))
+        self.sh = RowTable(torch.cat(
+            [sh.to(device).float().reshape(n, 3 * cfg.n_basis), torch.zeros(1, 3 * cfg.n_basis, device=device)]))
+        self._occ_cache: torch.Tensor | None = None
+
+    # ---- geometry -------------------------------------------------------------------------
+    @property
+    def cell(self) -> float:
+        """Lattice spacing in normalized units."""
+        return 2 * self.span / self.res
+
+    @property
+    def step(self) -> float:
+        return self.cfg.step_cells * self.cell
+
+    @property
+    def act_shift(self) -> float:
+        """Raw-density offset making one step's opacity ``init_alpha`` at the start resolution."""
+        step0 = self.cfg.step_cells * 2 * self.span / self.cfg.res_start
+        s = -math.log(1 - self.cfg.init_alpha) / step0
+        return math.log(math.expm1(s))
+
+    def normalize(self, p: torch.Tensor) -> torch.Tensor:
+        """World points (..., 3) -> lattice-space points (object: [-1,1]^3, scene: contracted)."""
+        x = (p - self.center) / self.radius
+        return contract(x) if self.cfg.mode == "scene" else x
+
+    def to_lattice(self, x: torch.Tensor) -> torch.Tensor:
+        """Lattice-space points (..., 3) -> continuous lattice coordinates (point i at i)."""
+        return (x + self.span) / self.cell - 0.5
+
+    def lattice_points(self, lin: torch.Tensor, res: int | None = None) -> torch.Tensor:
+        """Lattice-space position (M, 3) of linear lattice indices (M,) (of a ``res`` lattice)."""
+        r = res or self.res
+        ijk = torch.stack([lin // (r * r), (lin // r) % r, lin % r], -1).float()
+        return (ijk + 0.5) * (2 * self.span / r) - self.span
+
+    @property
+    def n_active(self) -> int:
+        return int(self.active.numel())
+
+    # ---- queries --------------------------------------------------------------------------
+    def _corners(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rows (M, 8) and trilinear weights (M, 8) for lattice-space points (M, 3)."""
+        u = self.to_lattice(x).clamp(0, self.res - 1)
+        i0 = u.floor().clamp(max=self.res - 2)
+        f = u - i0
+        i0 = i0.long()
+        c = _CORNERS.to(x.device)
+        lin = _lattice_lin(i0[:, None, :] + c[None], self.res)
+        rows = self.index[lin].long()
+        rows = torch.where(rows < 0, torch.full_like(rows, self.n_active), rows)
+        fc = torch.where(c[None].bool(), f[:, None, :], 1 - f[:, None, :])
+        return rows, fc.prod(-1)
+
+    def sigma_from(self, rows: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+        """Density (M,) per normalized unit, post-activation (DVGO: interpolate, then softplus)."""
+        raw = torch.bmm(w[:, None, :], self.density.gather(rows))[:, 0, 0]
+        return F.softplus(raw + self.act_shift)
+
+    def rgb_from(self, rows: torch.Tensor, w: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+        """Colour (M, 3) in [0, 1] seen along unit world directions ``d`` (M, 3)."""
+        coef = torch.bmm(w[:, None, :], self.sh.gather(rows))[:, 0]
+        coef = coef.view(-1, 3, self.cfg.n_basis)
+        return torch.sigmoid((coef * sh_basis(self.cfg.sh_degree, d)[:, None, :]).sum(-1))
+
+    def query(self, x: torch.Tensor, d: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Density (M,) and, given directions (M, 3), colour (M, 3) at lattice-space points (M, 3)."""
+        rows, w = self._corners(x)
+        sig = self.sigma_from(rows, w)
+        return sig, (self.rgb_from(rows, w, d) if d is not None else None)
+
+    def raw_at(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Interpolated raw density (M,) and SH coefficients (M, 3*B) at lattice-space points."""
+        rows, w = self._corners(x)
+        raw = (self.density.data[rows][..., 0] * w).sum(-1)
+        coef = (self.sh.data[rows] * w[..., None]).sum(1)
+        return raw, coef
+
+    def occupancy(self) -> torch.Tensor:
+        """Dense bool lattice (res^3,): points near an active one (dilated by one cell)."""
+        if self._occ_cache is None:
+            occ = torch.zeros(self.res ** 3, device=self.device)
+            occ[self.active] = 1
+            occ = F.max_pool3d(occ.view(1, 1, self.res, self.res, self.res), 3, 1, 1)
+            self._occ_cache = occ.view(-1) > 0
+        return self._occ_cache
+
+    # ---- structure changes ----------------------------------------------------------------
+    @torch.no_grad()
+    def point_alpha(self) -> torch.Tensor:
+        """Opacity of one cell at each active point (N,), from its own raw density."""
+        sig = F.softplus(self.density.data[:-1, 0] + self.act_shift)
+        return 1 - torch.exp(-sig * self.cell)
+
+    @torch.no_grad()
+    def pruned(self, alpha_min: float) -> "VoxelField":
+        """A field without the points whose one-cell opacity is below ``alpha_min``.
+
+        Kept: points above the threshold and their 26 neighbours (trilinear interpolation
+        near a surface reads them).
+        """
+        keep = self.point_alpha() >= alpha_min
+        if not bool(keep.any()):
+            return self    # nothing learned yet: pruning would leave no field to train
+        mask = torch.zeros(self.res ** 3, device=self.device)
+        mask[self.active[keep]] = 1
+        mask = F.max_pool3d(mask.view(1, 1, *(self.res,) * 3), 3, 1, 1).view(-1) > 0
+        rows = self.index[mask.nonzero()[:, 0]].long()
+        rows = rows[rows >= 0]
+        return VoxelField(self.cfg, self.volume, self.res, self.device, self.active[rows],
+                          self.density.data[rows], self.sh.data[rows])
+
+    @torch.no_grad()
+    def upsampled(self, res: int) -> "VoxelField":
+        """The same field on a finer lattice (``res`` points per axis), active near active points."""
+        occ = torch.zeros(self.res ** 3, device=self.device)
+        occ[self.active] = 1
+        occ = F.max_pool3d(occ.view(1, 1, *(self.res,) * 3), 3, 1, 1)
+        # Fine point -> coarse point it lies in (nearest): the dilated coarse mask picks it.
+        fine = F.interpolate(occ, size=(res,) * 3, mode="nearest").view(-1) > 0
+        lin = fine.nonzero()[:, 0]
+        x = self.lattice_points(lin, res)
+        raws, coefs = [], []
+        for s in range(0, lin.numel(), 1 << 20):
+            r, c = self.raw_at(x[s:s + (1 << 20)])
+            raws.append(r)
+            coefs.append(c)
+        return VoxelField(self.cfg, self.volume, res, self.device, lin,
+                          torch.cat(raws) if raws else None, torch.cat(coefs) if coefs else None)
+
+    def reset_sentinel(self) -> None:
+        self.density.data[-1] = self.SENTINEL_RAW
+        self.sh.data[-1] = 0
+
+    # ---- persistence ----------------------------------------------------------------------
+    def state(self) -> dict:
+        return {"config": asdict(self.cfg), "volume": self.volume.to_json(), "res": self.res,
+                "active": self.active.cpu(), "density": self.density.data[:-1].cpu(),
+                "sh": self.sh.data[:-1].cpu()}
+
+    @classmethod
+    def from_state(cls, st: dict, device: torch.device) -> "VoxelField":
+        cfgd = dict(st["config"])
+        cfgd["upsample_at"] = tuple(cfgd.get("upsample_at", ()))
+        cfg = FieldConfig(**cfgd)
+        v = st["volume"]
+        vol = ObjectVolume(tuple(v["center"]), float(v["radius"]), bool(v.get("estimated", False)))
+        return cls(cfg, vol, st["res"], device, st["active"], st["density"], st["sh"])
+
+
+# ---- rays -------------------------------------------------------------------------------------
+
+def _sphere_hits(o: torch.Tensor, d: torch.Tensor, r: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Entry and exit distances (B,) of rays with the sphere of radius ``r`` at the origin.
+
+    Rays that miss get entry = exit = the distance of closest approach (clamped at 0).
+    """
+    b = (o * d).sum(-1)
+    c = (o * o).sum(-1) - r * r
+    disc = b * b - c
+    s = disc.clamp_min(0).sqrt()
+    t0 = (-b - s).clamp_min(0)
+    t1 = (-b + s).clamp_min(0)
+    miss = disc <= 0
+    tc = (-b).clamp_min(0)
+    return torch.where(miss, tc, t0), torch.where(miss, tc, t1)
+
+
+def _object_samples(field: VoxelField, o: torch.Tensor, d: torch.Tensor, jitter: torch.Tensor):
+    """Sample distances (B, S), validity (B, S) and spacing (B, S) inside the unit sphere."""
+    t0, t1 = _sphere_hits(o, d, 1.0)
+    step = field.step
+    S = max(1, int(math.ceil(float((t1 - t0).max()) / step)))
+    k = torch.arange(S, device=o.device, dtype=o.dtype)
+    t = t0[:, None] + (k[None] + jitter[:, None]) * step
+    valid = t < t1[:, None]
+    return t, valid, torch.full_like(t, step)
+
+
+def _scene_samples(field: VoxelField, o: torch.Tensor, d: torch.Tensor, jitter: torch.Tensor,
+                   far: float = 1e4):
+    """Samples for the contracted scene: even inside the unit sphere, even in contracted
+    radius outside it (before and after), so the lattice sees about one sample per half cell."""
+    step = field.step
+    t0, t1 = _sphere_hits(o, d, 1.0)
+    S_in = max(1, int(math.ceil(float((t1 - t0).max()) / step)))
+    # Outside, offsets u from the sphere so that 2 - 1/(1+u) advances by one step each.
+    s = (torch.arange(int(math.ceil(1 / step)), device=o.device, dtype=o.dtype)[None]
+         + jitter[:, None]) * step
+    u = 1 / (1 - s).clamp_min(1e-4) - 1
+    k = torch.arange(S_in, device=o.device, dtype=o.dtype)
+    t_in = t0[:, None] + (k[None] + jitter[:, None]) * step
+    t_pre = (t0[:, None] - u.flip(-1))
+    t_post = t1[:, None] + u
+    t = torch.cat([t_pre, t_in, t_post], -1)
+    valid = torch.cat([t_pre > 0, t_in < t1[:, None], t_post < far], -1)
+    # Spacing measured in lattice space, where the density lives.
+    x = contract(o[:, None] + t[..., None] * d[:, None])
+    gap = (x[:, 1:] - x[:, :-1]).norm(dim=-1)
+    delta = torch.cat([gap, gap[:, -1:]], -1)
+    return t, valid, delta
+
+
+@dataclass
+class RayOutput:
+    rgb: torch.Tensor        # (B, 3) composited on the given background
+    alpha: torch.Tensor      # (B,) accumulated opacity = 1 - transmittance
+    depth: torch.Tensor      # (B,) expected distance (world units), 0 where empty
+
+
+def render_rays(field: VoxelField, origins: torch.Tensor, dirs: torch.Tensor,
+                background: torch.Tensor | None = None, jitter: bool = False) -> RayOutput:
+    """Volume-render world rays: origins (B, 3), unit directions (B, 3), background (B, 3) or None (black).
+
+    Samples in empty lattice space are skipped; colour is evaluated only where a sample's
+    weight exceeds ``weight_eps``. Differentiable with respect to the field.
+    """
+    dev = origins.device
+    B = origins.shape[0]
+    o = (origins - field.center) / field.radius
+    j = torch.rand(B, device=dev) if jitter else torch.full((B,), 0.5, device=dev)
+    sampler = _object_samples if field.cfg.mode == "object" else _scene_samples
+    t, valid, delta = sampler(field, o, dirs, j)
+    x = o[:, None] + t[..., None] * dirs[:, None]
+    if field.cfg.mode == "scene":
+        x = contract(x)
+    u = field.to_lattice(x).round().long().clamp(0, field.res - 1)
+    valid &= field.occupancy()[_lattice_lin(u, field.res)]
+    idx = valid.nonzero()
+    bi, si = idx[:, 0], idx[:, 1]
+    rows, w = field._corners(x[bi, si])
+    sig = field.sigma_from(rows, w)
+    tau = torch.zeros_like(t).index_put((bi, si), sig * delta[bi, si])
+    # Transmittance before each sample: exp of minus the optical depth accumulated so far.
+    T = torch.exp(-(torch.cumsum(tau, -1) - tau))
+    wgt = (T * (1 - torch.exp(-tau)))[bi, si]
+    keep = wgt > field.cfg.weight_eps
+    rgb_s = field.rgb_from(rows[keep], w[keep], dirs[bi[keep]])
+    rgb = torch.zeros(B, 3, device=dev).index_add(0, bi[keep], wgt[keep, None] * rgb_s)
+    acc = torch.zeros(B, device=dev).index_add(0, bi, wgt)
+    dep = torch.zeros(B, device=dev).index_add(0, bi, wgt * t[bi, si]) * field.radius
+    if background is not None:
+        rgb = rgb + (1 - acc)[:, None] * background
+    return RayOutput(rgb, acc, dep)
+
+
+@torch.no_grad()
+def render_image(field: VoxelField, origins: torch.Tensor, dirs: torch.Tensor,
+                 background: tuple[float, float, float] | None = None, chunk: int = 8192) -> np.ndarray:
+    """Straight RGBA (H, W, 4) float32 of rays (H, W, 3) — or RGB on ``background`` if given."""
+    H, W = origins.shape[:2]
+    o = origins.reshape(-1, 3).to(field.device)
+    d = dirs.reshape(-1, 3).to(field.device)
+    out = []
+    for s in range(0, o.shape[0], chunk):
+        r = render_rays(field, o[s:s + chunk], d[s:s + chunk])
+        a = r.alpha.clamp(0, 1)
+        if background is None:
+            rgb = r.rgb / a.clamp_min(1e-6)[:, None]
+            out.append(torch.cat([rgb.clamp(0, 1), a[:, None]], -1))
+        else:
+            bg = torch.tensor(background, device=o.device, dtype=torch.float32)
+            out.append((r.rgb + (1 - a)[:, None] * bg).clamp(0, 1))
+    return torch.cat(out).reshape(H, W, -1).cpu().numpy()
+
+
+# ---- training ---------------------------------------------------------------------------------
+
+@dataclass
+class RayBank:
+    """Every training pixel as a ray: origins, unit directions (N, 3) world; straight RGBA (N, 4)."""
+
+    origins: torch.Tensor
+    dirs: torch.Tensor
+    rgba: torch.Tensor
+
+    @property
+    def n(self) -> int:
+        return int(self.origins.shape[0])
+
+
+def frame_tensors(frame: Frame, downscale: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(origins, dirs, rgba) of one frame at 1/downscale size, each (h, w, C) float32."""
+    rgba = load_rgba(frame, downscale)
+    o, d = frame_rays(scaled_intrinsics(frame.intr, downscale), frame.c2w)
+    return o, d, rgba
+
+
+def build_ray_bank(frames: list[Frame], downscale: float, volume: ObjectVolume | None = None,
+                   mode: str = "object") -> RayBank:
+    """All pixels of ``frames``; in object mode, rays that miss the object sphere are dropped
+    (they only ever see the background, which the random-background loss already covers)."""
+    os_, ds, cs = [], [], []
+    for f in frames:
+        o, d, c = frame_tensors(f, downscale)
+        o, d, c = o.reshape(-1, 3), d.reshape(-1, 3), c.reshape(-1, 4)
+        if mode == "object" and volume is not None:
+            oc = o - np.asarray(volume.center, np.float32)
+            b = (oc * d).sum(-1)
+            hit = b * b - ((oc * oc).sum(-1) - volume.radius ** 2) > 0
+            o, d, c = o[hit], d[hit], c[hit]
+        os_.append(o)
+        ds.append(d)
+        cs.append(c)
+    if not os_ or sum(len(o) for o in os_) == 0:
+        raise DbbError("no training rays: no frame sees the object volume")
+    return RayBank(torch.from_numpy(np.concatenate(os_)), torch.from_numpy(np.concatenate(ds)),
+                   torch.from_numpy(np.concatenate(cs)))
+
+
+@dataclass
+class Budget:
+    """When to stop: after ``steps`` steps, or ``minutes`` of wall-clock training, whichever first."""
+
+    minutes: float | None = None
+    steps: int | None = None
+
+    def fraction(self, step: int, seconds: float) -> float:
+        fs = [step / self.steps] if self.steps else []
+        if self.minutes:
+            fs.append(seconds / (60 * self.minutes))
+        return min(1.0, max(fs)) if fs else 1.0
+
+
+@dataclass
+class TrainState:
+    """Where training is: the field, the step, seconds spent, and the loss/PSNR history."""
+
+    field: VoxelField
+    step: int = 0
+    seconds: float = 0.0
+    stage: int = 0
+    history: list[dict] = field(default_factory=list)   # {"step", "seconds", "loss", "psnr", "res"}
+
+    def save(self, path: Path) -> None:
+        st = {"field": self.field.state(), "step": self.step, "seconds": self.seconds,
+              "stage": self.stage, "history": self.history}
+        tmp = Path(path).with_name(Path(path).name + f".tmp{os.getpid()}")
+        torch.save(st, tmp)
+        os.replace(tmp, path)
+
+    @classmethod
+    def load(cls, path: Path, device: torch.device) -> "TrainState":
+        try:
+            st = torch.load(path, map_location="cpu", weights_only=False)
+        except (OSError, RuntimeError, EOFError) as e:
+            raise DbbError(f"cannot read checkpoint {path}: {e}") from None
+        return cls(VoxelField.from_state(st["field"], device), st["step"], st["seconds"],
+                   st["stage"], list(st["history"]))
+
+
+def stage_resolutions(cfg: FieldConfig) -> list[int]:
+    """Lattice sizes of the coarse-to-fine stages: res_start doubling up to res_max."""
+    out = [cfg.res_start]
+    while out[-1] * 2 <= cfg.res_max:
+        out.append(out[-1] * 2)
+    if out[-1] < cfg.res_max:
+        out.append(cfg.res_max)
+    return out
+
+
+def tv_loss(field: VoxelField, n: int, gen: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mean squared difference to the +x, +y, +z neighbours over ``n`` random active points:
+    (density term, SH term). Inactive neighbours are not counted."""
+    N = field.n_active
+    if N == 0:
+        z = field.density.gather(torch.zeros(0, dtype=torch.long, device=field.device)).sum()
+        return z, z
+    pick = torch.randint(0, N, (min(n, N),), device=field.device, generator=gen)
+    lin = field.active[pick]
+    r = field.res
+    ijk = torch.stack([lin // (r * r), (lin // r) % r, lin % r], -1)
+    dens, shs = [], []
+    for axis in range(3):
+        nb = ijk.clone()
+        nb[:, axis] += 1
+        ok = nb[:, axis] < r
+        nrows = field.index[_lattice_lin(nb.clamp(max=r - 1), r)].long()
+        ok &= nrows >= 0
+        a, b = pick[ok], nrows[ok]
+        dens.append(field.density.gather(a) - field.density.gather(b))
+        shs.append(field.sh.gather(a) - field.sh.gather(b))
+    d = torch.cat(dens)
+    s = torch.cat(shs)
+    return (d ** 2).mean() if d.numel() else d.sum(), (s ** 2).mean() if s.numel() else s.sum()
+
+
+def psnr(mse: float) -> float:
+    return float(-10 * math.log10(max(mse, 1e-12)))
+
+
+def new_field(cfg: FieldConfig, volume: ObjectVolume, device: torch.device) -> VoxelField:
+    """A fresh, nearly empty field over the whole lattice at the first resolution."""
+    return VoxelField(cfg, volume, cfg.res_start, device)
+
+
+def train(state: TrainState, bank: RayBank, budget: Budget,
+          on_step: Callable[[TrainState, float], None] | None = None,
+          checkpoint: Path | None = None, checkpoint_every_s: float = 120.0) -> TrainState:
+    """Optimize ``state.field`` on the rays of ``bank`` until ``budget`` is spent.
+
+    Each step renders ``batch_rays`` random rays over random background colours (so alpha is
+    learned as true transparency: the target is ``rgb * a + (1 - a) * bg``), adds TV, and
+    takes a sparse Adam step. The coarse-to-fine schedule follows the *fraction of the budget*
+    spent, so a shorter budget runs the same stages faster. Checkpoints go to ``checkpoint``.
+    """
+    cfg = state.field.cfg
+    dev = state.field.device
+    gen = torch.Generator(device="cpu").manual_seed(cfg.seed + state.step)
+    torch.manual_seed(cfg.seed + state.step)
+    ress = stage_resolutions(cfg)
+    bounds = list(cfg.upsample_at[: len(ress) - 1])
+    t_start = time.perf_counter() - state.seconds
+    last_ckpt = time.perf_counter()
+    ema = None
+    while True:
+        seconds = time.perf_counter() - t_start
+        frac = budget.fraction(state.step, seconds)
+        if frac >= 1.0:
+            break
+        # Coarse to fine: prune, then move to the next lattice when its budget share starts.
+        if state.stage < len(bounds) and frac >= bounds[state.stage]:
+            f = state.field.pruned(cfg.prune_alpha)
+            nxt = ress[state.stage + 1]
+            if f.n_active * (nxt / f.res) ** 3 <= cfg.max_points:
+                f = f.upsampled(nxt)
+            state.field = f
+            state.stage += 1
+        fld = state.field
+        lr_scale = cfg.lr_final_ratio ** frac
+        pick = torch.randint(0, bank.n, (cfg.batch_rays,), generator=gen)
+        o = bank.origins[pick].to(dev)
+        d = bank.dirs[pick].to(dev)
+        c = bank.rgba[pick].to(dev)
+        bg = torch.rand(cfg.batch_rays, 3, generator=gen).to(dev)
+        target = c[:, :3] * c[:, 3:] + (1 - c[:, 3:]) * bg
+        out = render_rays(fld, o, d, bg, jitter=True)
+        mse = F.mse_loss(out.rgb, target)
+        loss = mse
+        if cfg.tv_density > 0 or cfg.tv_sh > 0:
+            tvd, tvs = tv_loss(fld, cfg.tv_points, gen)
+            loss = loss + cfg.tv_density * tvd + cfg.tv_sh * tvs
+        loss.backward()
+        fld.density.adam_step(cfg.lr_density * lr_scale)
+        fld.sh.adam_step(cfg.lr_sh * lr_scale)
+        fld.reset_sentinel()
+        state.step += 1
+        m = float(mse.detach())
+        ema = m if ema is None else 0.9 * ema + 0.1 * m
+        state.seconds = time.perf_counter() - t_start
+        if state.step % 10 == 0 or state.step == 1:
+            state.history.append({"step": state.step, "seconds": round(state.seconds, 2),
+                                  "loss": float(loss.detach()), "psnr": psnr(ema), "res": fld.res,
+                                  "points": fld.n_active})
+        if on_step is not None:
+            on_step(state, psnr(ema))
+        if checkpoint is not None and time.perf_counter() - last_ckpt > checkpoint_every_s:
+            state.save(checkpoint)
+            last_ckpt = time.perf_counter()
+    # Leave the field pruned: what gets baked and saved holds no empty lattice points.
+    state.field = state.field.pruned(cfg.prune_alpha)
+    if checkpoint is not None:
+        state.save(checkpoint)
+    return state
+
+
+def pick_device() -> torch.device:
+    return torch.device("cuda" if torch.cuda.is_available() else "cpu")

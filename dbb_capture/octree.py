@@ -1,0 +1,336 @@
+"""PlenOctrees: bake a field into svox's ``N3Tree`` ``.npz``, load it back, render it as RGBA.
+
+The file is exactly what ``svox.N3Tree.save`` writes (``N3Tree.load`` reads it):
+``data`` float16 (capacity, 2, 2, 2, data_dim), ``child`` int32 (capacity, 2, 2, 2) holding
+the *relative* offset of the child node (0 = leaf), ``parent_depth`` int32 (capacity, 2)
+(packed parent cell ``node * 8 + slot`` and node depth; root depth 0), ``n_internal``,
+``n_free``, ``data_dim``, ``depth_limit``, ``geom_resize_fact``, ``invradius3``
+(``0.5 / radius`` per axis), ``offset`` (``0.5 - center * invradius``), ``data_format``
+(``"SH9"`` for SH degree 2, ``"SH16"`` for degree 3). A node at depth k splits its cube in
+2x2x2 cells, so leaves at depth ``depth_limit`` make a 2^(depth_limit+1) lattice (depth 8: 512).
+
+Leaf channels are ``[R basis.., G basis.., B basis.., sigma]``; ``sigma`` is density per
+world unit (metres for captures); colour is ``sigmoid(SH . coeffs)`` as svox does it. We
+add ``dbb_colour_activation`` (``"sigmoid"``) and ``dbb_density_units`` keys; svox ignores them.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from .errors import DbbError
+from .fields import COLOUR_ACTIVATION, VoxelField, sh_basis
+from .outputs import write_bytes_atomic
+
+_FORMATS = {1: "SH1", 4: "SH4", 9: "SH9", 16: "SH16"}
+
+
+@dataclass
+class PlenOctree:
+    """An N3Tree (branching 2) as flat arrays, exactly the svox fields."""
+
+    data: np.ndarray          # (n, 2, 2, 2, data_dim) float16
+    child: np.ndarray         # (n, 2, 2, 2) int32, relative index of the child node, 0 = leaf
+    parent_depth: np.ndarray  # (n, 2) int32
+    invradius: np.ndarray     # (3,) float32: world -> tree scale per axis
+    offset: np.ndarray        # (3,) float32: tree = offset + world * invradius, in [0, 1]^3
+    depth_limit: int
+    data_format: str          # "SH9" ...
+    colour_activation: str = COLOUR_ACTIVATION
+
+    @property
+    def n_nodes(self) -> int:
+        return int(self.child.shape[0])
+
+    @property
+    def data_dim(self) -> int:
+        return int(self.data.shape[-1])
+
+    @property
+    def sh_degree(self) -> int:
+        return int(round(math.sqrt((self.data_dim - 1) // 3))) - 1
+
+    @property
+    def center(self) -> np.ndarray:
+        """World centre of the tree's cube (3,)."""
+        return (0.5 - self.offset) / self.invradius
+
+    @property
+    def radius(self) -> np.ndarray:
+        """Half side of the tree's cube per axis (3,)."""
+        return 0.5 / self.invradius
+
+    def n_leaves_with_data(self) -> int:
+        return int(((self.child == 0) & (self.data[..., -1] > 0)).sum())
+
+    # ---- persistence ----------------------------------------------------------------------
+    def save(self, path: Path, compress: bool = True) -> int:
+        """Write the svox ``.npz`` atomically; returns its size in bytes."""
+        buf = io.BytesIO()
+        arrays = {
+            "data_dim": np.int64(self.data_dim), "child": self.child.astype(np.int32),
+            "parent_depth": self.parent_depth.astype(np.int32),
+            "n_internal": np.int64(self.n_nodes), "n_free": np.int64(0),
+            "invradius3": self.invradius.astype(np.float32), "offset": self.offset.astype(np.float32),
+            "depth_limit": np.int64(self.depth_limit), "geom_resize_fact": np.float64(1.0),
+            "data": self.data.astype(np.float16), "data_format": np.array(self.data_format),
+            "dbb_colour_activation": np.array(self.colour_activation),
+            "dbb_density_units": np.array("per world unit"),
+        }
+        (np.savez_compressed if compress else np.savez)(buf, **arrays)
+        write_bytes_atomic(Path(path), buf.getvalue())
+        return len(buf.getvalue())
+
+    @classmethod
+    def load(cls, path: Path) -> "PlenOctree":
+        """Read a svox ``.npz`` (ours or svox's). Trees without a recorded activation are
+        svox's own, whose colour activation is sigmoid."""
+        try:
+            z = np.load(Path(path))
+        except (OSError, ValueError) as e:
+            raise DbbError(f"cannot read PlenOctree {path}: {e}") from None
+        need = {"data", "child", "parent_depth", "offset", "depth_limit"}
+        if not need <= set(z.files) or not ({"invradius3", "invradius"} & set(z.files)):
+            raise DbbError(f"{path} is not a svox N3Tree npz (missing {sorted(need - set(z.files))})")
+        child = z["child"]
+        if child.ndim != 4 or child.shape[1:] != (2, 2, 2):
+            raise DbbError(f"{path}: only branching factor 2 trees are supported")
+        n = int(z["n_internal"]) if "n_internal" in z.files else child.shape[0]
+        inv = z["invradius3"] if "invradius3" in z.files else np.full(3, float(z["invradius"]))
+        fmt = str(z["data_format"]) if "data_format" in z.files else "RGBA"
+        act = str(z["dbb_colour_activation"]) if "dbb_colour_activation" in z.files else "sigmoid"
+        if not fmt.startswith("SH"):
+            raise DbbError(f"{path}: data_format {fmt} is not supported (need SH1/SH4/SH9/SH16)")
+        return cls(z["data"][:n], child[:n], z["parent_depth"][:n], np.asarray(inv, np.float32).reshape(3),
+                   np.asarray(z["offset"], np.float32).reshape(3), int(z["depth_limit"]), fmt, act)
+
+
+# ---- baking -----------------------------------------------------------------------------------
+
+def build_tree(cells: np.ndarray, values: np.ndarray, depth: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """N3Tree arrays holding ``values`` (K, C) at leaf cells ``cells`` (K, 3) of the
+    2^(depth+1) lattice; everything else is an empty leaf (zeros).
+
+    Returns (data (n, 2, 2, 2, C) float32, child (n, 2, 2, 2) int32 relative, parent_depth (n, 2)).
+    Nodes are numbered breadth first, each depth sorted by position.
+    """
+    cells = np.asarray(cells, np.int64)
+    C = values.shape[1]
+    keys_by_depth = []          # sorted unique node keys per depth
+    for k in range(depth + 1):
+        q = cells >> (depth + 1 - k)          # node coordinates at depth k (2^k per axis)
+        keys_by_depth.append(np.unique((q[:, 0] << (2 * k)) | (q[:, 1] << k) | q[:, 2])
+                             if len(cells) else np.zeros(0, np.int64))
+    keys_by_depth[0] = np.zeros(1, np.int64)  # the root exists even for an empty tree
+    starts = np.cumsum([0] + [len(k) for k in keys_by_depth])
+    n = int(starts[-1])
+    data = np.zeros((n, 2, 2, 2, C), np.float32)
+    child = np.zeros((n, 2, 2, 2), np.int32)
+    parent_depth = np.zeros((n, 2), np.int32)
+    for k in range(1, depth + 1):
+        keys = keys_by_depth[k]
+        q = np.stack([keys >> (2 * k), (keys >> k) & ((1 << k) - 1), keys & ((1 << k) - 1)], -1)
+        pq = q >> 1
+        km1 = k - 1
+        pkeys = (pq[:, 0] << (2 * km1)) | (pq[:, 1] << km1) | pq[:, 2]
+        pidx = starts[km1] + np.searchsorted(keys_by_depth[km1], pkeys)
+        idx = starts[k] + np.arange(len(keys))
+        s = q & 1
+        child[pidx, s[:, 0], s[:, 1], s[:, 2]] = (idx - pidx).astype(np.int32)
+        parent_depth[idx, 0] = pidx * 8 + s[:, 0] * 4 + s[:, 1] * 2 + s[:, 2]
+        parent_depth[idx, 1] = k
+    if len(cells):
+        q = cells >> 1
+        keys = (q[:, 0] << (2 * depth)) | (q[:, 1] << depth) | q[:, 2]
+        nidx = starts[depth] + np.searchsorted(keys_by_depth[depth], keys)
+        s = cells & 1
+        data[nidx, s[:, 0], s[:, 1], s[:, 2]] = values
+    return data, child, parent_depth
+
+
+def default_depth(field: VoxelField) -> int:
+    """Tree depth whose leaf lattice matches the field's (capped at 8, i.e. 512^3)."""
+    return int(min(8, max(1, round(math.log2(field.res)) - 1)))
+
+
+@torch.no_grad()
+def bake(field: VoxelField, depth: int | None = None, alpha_min: float = 1e-3,
+         supersample: int = 2, chunk: int = 1 << 18) -> PlenOctree:
+    """Bake the field's inner object volume into a :class:`PlenOctree`.
+
+    Leaves sit at the 2^(depth+1) lattice over the object's cube; cells whose centre lies
+    outside the object sphere are trimmed, so are cells whose opacity across one cell stays
+    under ``alpha_min``. Density is averaged over ``supersample``^3 points per cell (the tree
+    is piecewise constant, the field trilinear); SH coefficients are taken at the centre.
+    """
+    depth = default_depth(field) if depth is None else int(depth)
+    if not 1 <= depth <= 8:
+        raise DbbError("octree depth must be 1..8")
+    L = 1 << (depth + 1)
+    dev = field.device
+    # Candidate cells: near active field points, inside the unit sphere.
+    occ = field.occupancy().float().view(1, 1, *(field.res,) * 3)
+    if field.cfg.mode == "scene":
+        # Lattice spans [-2, 2]: keep the inner [-1, 1] cube, where contraction is the identity.
+        a, b = field.res // 4, 3 * field.res // 4
+        occ = occ[..., a:b, a:b, a:b]
+    cand = F.interpolate(occ, size=(L,) * 3, mode="nearest").view(-1) > 0
+    lin = cand.nonzero()[:, 0]
+    ijk = torch.stack([lin // (L * L), (lin // L) % L, lin % L], -1)
+    size = 2.0 / L                                           # cell side, normalized units
+    centres = (ijk.float() + 0.5) * size - 1.0
+    inside = centres.norm(dim=-1) <= 1.0
+    ijk, centres = ijk[inside], centres[inside]
+    s = supersample
+    offs = ((torch.stack(torch.meshgrid(*(torch.arange(s),) * 3, indexing="ij"), -1).view(-1, 3).float()
+             + 0.5) / s - 0.5).to(dev) * size
+    keep_cells, keep_vals = [], []
+    for i in range(0, centres.shape[0], chunk):
+        c = centres[i:i + chunk]
+        x = (c[:, None, :] + offs[None]).view(-1, 3)
+        sig = field.query(x)[0].view(-1, offs.shape[0]).mean(-1)
+        alpha = 1 - torch.exp(-sig * size)
+        ok = alpha >= alpha_min
+        if not bool(ok.any()):
+            continue
+        _, coef = field.raw_at(c[ok])
+        sig_world = sig[ok] / field.radius
+        keep_cells.append(ijk[i:i + chunk][ok].cpu())
+        keep_vals.append(torch.cat([coef, sig_world[:, None]], -1).cpu())
+    C = 3 * field.cfg.n_basis + 1
+    cells = torch.cat(keep_cells).numpy() if keep_cells else np.zeros((0, 3), np.int64)
+    vals = torch.cat(keep_vals).numpy() if keep_vals else np.zeros((0, C), np.float32)
+    data, child, pd = build_tree(cells, vals, depth)
+    r = field.radius
+    inv = np.full(3, 0.5 / r, np.float32)
+    offset = (0.5 - np.asarray(field.volume.center) * inv).astype(np.float32)
+    fmt = _FORMATS[field.cfg.n_basis]
+    return PlenOctree(np.clip(data, -65000, 65000).astype(np.float16), child, pd, inv, offset,
+                      depth, fmt)
+
+
+# ---- rendering --------------------------------------------------------------------------------
+
+class TreeRenderer:
+    """Vectorized ray casting through a :class:`PlenOctree` (PyTorch, CPU or CUDA).
+
+    Rays walk leaf to leaf (exact cell exits, so empty leaves of any size are crossed in one
+    step), accumulate ``alpha = 1 - exp(-sigma * length)`` front to back, and stop once
+    their transmittance falls below ``t_min`` (early termination).
+    """
+
+    def __init__(self, tree: PlenOctree, device: torch.device | str = "cpu", t_min: float = 1e-3):
+        if tree.colour_activation not in ("sigmoid", "relu_shift"):
+            raise DbbError(f"unknown colour activation {tree.colour_activation!r}")
+        self.tree = tree
+        self.device = torch.device(device)
+        self.t_min = t_min
+        n = tree.n_nodes
+        rel = torch.from_numpy(tree.child.reshape(-1).astype(np.int64))
+        node_of = torch.arange(n).repeat_interleave(8)
+        # Absolute child node per cell, -1 for leaves.
+        self.child = torch.where(rel != 0, node_of + rel, torch.full_like(rel, -1)).to(self.device)
+        self.data = torch.from_numpy(tree.data.reshape(n * 8, -1).astype(np.float32)).to(self.device)
+        self.inv = torch.from_numpy(tree.invradius.astype(np.float32)).to(self.device)
+        self.offset = torch.from_numpy(tree.offset.astype(np.float32)).to(self.device)
+        self.depth_limit = tree.depth_limit
+        self.degree = tree.sh_degree
+        self.n_basis = (self.degree + 1) ** 2
+
+    def _lookup(self, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Leaf cell (M,) and its side length (M,) in tree units for tree points (M, 3) in [0,1)."""
+        M = p.shape[0]
+        node = torch.zeros(M, dtype=torch.long, device=p.device)
+        cell = torch.zeros(M, dtype=torch.long, device=p.device)
+        size = torch.ones(M, device=p.device)
+        done = torch.zeros(M, dtype=torch.bool, device=p.device)
+        pi = p.clamp(0, 1 - 1e-7)
+        for k in range(self.depth_limit + 1):
+            sc = float(1 << (k + 1))
+            s = (pi * sc).long() & 1
+            lin = node * 8 + s[:, 0] * 4 + s[:, 1] * 2 + s[:, 2]
+            ch = self.child[lin]
+            leaf = (ch < 0) & ~done
+            cell = torch.where(leaf, lin, cell)
+            size = torch.where(leaf, torch.full_like(size, 1 / sc), size)
+            done |= leaf
+            node = torch.where(ch >= 0, ch, node)
+        return cell, size
+
+    def colour(self, coef: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+        """RGB (M, 3) from SH coefficients (M, 3*B) seen along world directions (M, 3)."""
+        v = (coef.view(-1, 3, self.n_basis) * sh_basis(self.degree, d)[:, None]).sum(-1)
+        if self.tree.colour_activation == "sigmoid":
+            return torch.sigmoid(v)
+        return (v + 0.5).clamp_min(0)      # Plenoxels' relu(x + 0.5)
+
+    @torch.no_grad()
+    def render_rays(self, origins: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Premultiplied RGB (B, 3) and alpha (B,) of world rays (B, 3), unit directions."""
+        dev = self.device
+        o = self.offset + origins.to(dev) * self.inv
+        d = dirs.to(dev) * self.inv
+        dw = dirs.to(dev)
+        B = o.shape[0]
+        inv_d = 1 / torch.where(d.abs() < 1e-12, torch.full_like(d, 1e-12), d)
+        ta = (0 - o) * inv_d
+        tb = (1 - o) * inv_d
+        t0 = torch.minimum(ta, tb).amax(-1).clamp_min(0)
+        t1 = torch.maximum(ta, tb).amin(-1)
+        rgb = torch.zeros(B, 3, device=dev)
+        trans = torch.ones(B, device=dev)
+        ids = (t1 > t0).nonzero()[:, 0]
+        t = t0[ids]
+        far = t1[ids]
+        eps = 1e-5 / float(self.inv.min())          # world-length nudge past a cell wall
+        while ids.numel():
+            oo, dd, idd = o[ids], d[ids], inv_d[ids]
+            p = oo + (t + eps)[:, None] * dd
+            cell, size = self._lookup(p)
+            lo = torch.floor(p / size[:, None]) * size[:, None]
+            wall = lo + (dd > 0).float() * size[:, None]
+            t_exit = ((wall - oo) * idd).amin(-1).clamp(min=t + eps)
+            t_exit = torch.minimum(t_exit, far)
+            val = self.data[cell]
+            sigma = val[:, -1].clamp_min(0)
+            alpha = 1 - torch.exp(-sigma * (t_exit - t))
+            hit = alpha > 0
+            if bool(hit.any()):
+                hi = ids[hit]
+                w = trans[hi] * alpha[hit]
+                rgb.index_add_(0, hi, w[:, None] * self.colour(val[hit, :-1], dw[hi]))
+                trans[hi] = trans[hi] * (1 - alpha[hit])
+            t = t_exit
+            live = (t < far - eps) & (trans[ids] > self.t_min)
+            ids, t, far = ids[live], t[live], far[live]
+        return rgb, 1 - trans
+
+    @torch.no_grad()
+    def render(self, c2w: np.ndarray, intr, background: tuple[float, float, float] | None = None,
+               chunk: int = 1 << 18) -> np.ndarray:
+        """Straight RGBA (H, W, 4) float32 — or RGB (H, W, 3) on ``background`` — of a camera.
+
+        ``c2w`` is OpenCV camera-to-world (4, 4); ``intr`` an :class:`~.cameras.Intrinsics`.
+        """
+        from .datasets import frame_rays
+
+        o, d = frame_rays(intr, c2w)
+        H, W = o.shape[:2]
+        o = torch.from_numpy(o.reshape(-1, 3))
+        d = torch.from_numpy(d.reshape(-1, 3))
+        outs = []
+        for s in range(0, o.shape[0], chunk):
+            rgb, a = self.render_rays(o[s:s + chunk], d[s:s + chunk])
+            if background is None:
+                outs.append(torch.cat([(rgb / a.clamp_min(1e-6)[:, None]).clamp(0, 1), a[:, None]], -1))
+            else:
+                bg = torch.tensor(background, dtype=torch.float32, device=rgb.device)
+                outs.append((rgb + (1 - a)[:, None] * bg).clamp(0, 1))
+        return torch.cat(outs).reshape(H, W, -1).cpu().numpy()
