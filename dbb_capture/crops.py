@@ -172,3 +172,49 @@ def sequence_windows(times: np.ndarray, splits: np.ndarray, length: int = 11,
         if not broken[s + 1:s + length].any():
             out.append((s, str(splits[s])))
     return out
+
+
+@dataclass(frozen=True)
+class CropRecord:
+    """One crop of the dataset: its image file, its camera, where it came from."""
+
+    file_path: str            # relative to the dataset folder, e.g. "crops/00012.png"
+    cam: CropCamera
+    source_frame: int
+    time: float
+    split: str
+    touches_border: bool = False
+    mask_path: str | None = None
+
+    def to_json(self) -> dict:
+        from .cameras import opengl_from_opencv
+
+        i = self.cam.intr
+        d = {"file_path": self.file_path,
+             "transform_matrix": opengl_from_opencv(self.cam.c2w).round(9).tolist(),
+             "fl_x": i.fx, "fl_y": i.fy, "cx": i.cx, "cy": i.cy, "w": i.width, "h": i.height,
+             "source_frame": self.source_frame, "time": round(self.time, 6),
+             "viewpoint": self.cam.viewpoint.to_json(), "split": self.split,
+             "touches_border": self.touches_border}
+        if self.mask_path:
+            d["mask_path"] = self.mask_path
+        return d
+
+
+def crops_json(records: list[CropRecord], center: np.ndarray, radius: float, up: np.ndarray,
+               size: int, fill: float, sequence_length: int = 11) -> dict:
+    """The ``crops.json`` document: nerfstudio schema with per-frame crop intrinsics.
+
+    Top level also records the object sphere (board frame), the up direction, the crop size
+    and fill, and the sequence windows (start frame indices of 1 context + N predicted).
+    """
+    times = np.array([r.time for r in records])
+    splits = np.array([r.split for r in records])
+    windows = sequence_windows(times, splits, sequence_length)
+    return {"camera_model": "OPENCV", "w": size, "h": size,
+            "k1": 0.0, "k2": 0.0, "k3": 0.0, "p1": 0.0, "p2": 0.0,
+            "object": {"center": [round(float(v), 6) for v in center], "radius": round(float(radius), 6)},
+            "up": [float(v) for v in up], "crop_size": size, "crop_fill": fill,
+            "sequence_length": sequence_length,
+            "sequences": [{"start": s, "split": sp} for s, sp in windows],
+            "frames": [r.to_json() for r in records]}
