@@ -57,6 +57,18 @@ class DetectorConfig:
     refine: bool = True       # re-refine corners at full resolution (cornerSubPix)
     win_frac: float = 0.5     # refinement half-window, as a fraction of the square's white margin
     win_max: int = 6
+    px_per_bit: float = 3.5   # reduce no further than this many px per marker bit (25th pct. marker)
+    one_threshold: bool = True  # once marker size is known, one adaptive-threshold window, not 3
+
+
+_SCALES = (1.0, 2.0 / 3.0, 0.5, 1.0 / 3.0, 0.25)  # cheap resize factors
+
+
+def _quantize_scale(scale: float, up: bool) -> float:
+    """The nearest cheap resize factor at or above (``up``) or at or below ``scale``."""
+    if up:
+        return min(s for s in _SCALES if s >= scale - 1e-9) if scale <= 1 else 1.0
+    return max([s for s in _SCALES if s <= scale + 1e-9] or [_SCALES[-1]])
 
 
 class BoardDetector:
@@ -67,20 +79,38 @@ class BoardDetector:
         self.cfg = cfg
         self._cv_board = board.cv_board()
         self._det = cv2.aruco.CharucoDetector(self._cv_board)
+        self._dets_by_window: dict[int, object] = {}
+        self._window: int | None = None  # adaptive-threshold window for the next frame (px)
         self._roi: tuple[int, int, int, int] | None = None   # x0, y0, x1, y1 in full-res px
         self._last_n = 0
         self._scale_hint: float | None = None  # scale that keeps the last frame's markers readable
 
     def reset(self) -> None:
-        self._roi, self._last_n, self._scale_hint = None, 0, None
+        self._roi, self._last_n, self._scale_hint, self._window = None, 0, None, None
 
-    def _detect_in(self, gray: np.ndarray, roi: tuple[int, int, int, int] | None, scale: float):
+    def _detector(self, window: int | None):
+        """OpenCV's detector; with ``window``, thresholding at that one window size only
+        (OpenCV's default tries 3, 13 and 23 px, which triples the marker search)."""
+        if window is None or not self.cfg.one_threshold:
+            return self._det
+        if window not in self._dets_by_window:
+            p = cv2.aruco.DetectorParameters()
+            p.adaptiveThreshWinSizeMin = p.adaptiveThreshWinSizeMax = window
+            self._dets_by_window[window] = cv2.aruco.CharucoDetector(
+                self._cv_board, cv2.aruco.CharucoParameters(), p)
+        return self._dets_by_window[window]
+
+    def _detect_in(self, gray: np.ndarray, roi: tuple[int, int, int, int] | None, scale: float,
+                   window: int | None = None):
         """detectBoard on ``gray`` cropped to ``roi`` and resized by ``scale``; results in full-res px."""
         x0, y0 = (roi[0], roi[1]) if roi else (0, 0)
         sub = gray[roi[1]:roi[3], roi[0]:roi[2]] if roi else gray
-        small = sub if scale == 1.0 else cv2.resize(sub, None, fx=scale, fy=scale,
-                                                    interpolation=cv2.INTER_AREA)
-        cc, ci, mc, mi = self._det.detectBoard(small)
+        # INTER_AREA is fast at 1/k (integer k); 2/3 goes through bilinear, which aliases a
+        # little, harmless for finding markers (corners are refined at full resolution).
+        integer = abs(1.0 / scale - round(1.0 / scale)) < 1e-6
+        small = sub if scale == 1.0 else cv2.resize(
+            sub, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA if integer else cv2.INTER_LINEAR)
+        cc, ci, mc, mi = self._detector(window).detectBoard(small)
         n_markers = 0 if mi is None else int(len(np.ravel(mi)))
         if cc is None or ci is None or len(np.ravel(ci)) == 0:
             return None, None, n_markers, mc
@@ -97,14 +127,15 @@ class BoardDetector:
         tracked region, the whole reduced image, the whole image at full resolution.
         """
         H, W = gray.shape
-        scale = min(1.0, self.cfg.max_side / max(H, W))
+        scale = _quantize_scale(min(1.0, self.cfg.max_side / max(H, W)), up=False)
         if self._scale_hint is not None:
-            scale = self._scale_hint
-        attempts = ([(self._roi, scale)] if self.cfg.track and self._roi is not None else [])
-        attempts += [(None, scale)] + ([(None, 1.0)] if scale < 1.0 else [])
+            scale = _quantize_scale(self._scale_hint, up=True)
+        # The cheap guess first (tracked region, one threshold window), then OpenCV's defaults.
+        attempts = ([(self._roi, scale, self._window)] if self.cfg.track and self._roi is not None else [])
+        attempts += [(None, scale, None)] + ([(None, 1.0, None)] if scale < 1.0 else [])
         best, used_scale = (None, None, 0, None), 1.0
-        for roi, s in attempts:
-            got = self._detect_in(gray, roi, s)
+        for roi, s, win in attempts:
+            got = self._detect_in(gray, roi, s, win)
             if got[0] is not None and (best[0] is None or len(got[0]) > len(best[0])):
                 best, used_scale = got, s
             elif best[0] is None:
@@ -119,10 +150,16 @@ class BoardDetector:
             # detectBoard refined them in the reduced image; sharpen them at full resolution.
             corners = self._refine(gray, corners, mcs, used_scale)
         self._last_n = len(ids)
-        # Next frame: the smallest scale that keeps ~4 px per marker bit on the smallest marker.
+        # Next frame: the smallest scale that keeps ``px_per_bit`` on all but the smallest
+        # quarter of the markers, and a threshold window of ~0.4 marker side at that scale.
         sides = [np.linalg.norm(np.diff(np.vstack([m, m[:1]]), axis=0), axis=1).min() for m in mcs]
-        bits = self._cv_board.getDictionary().markerSize + 2
-        self._scale_hint = float(np.clip(4.0 * bits / max(min(sides), 1.0), 0.25, 1.0)) if sides else None
+        self._scale_hint = self._window = None
+        if sides:
+            bits = self._cv_board.getDictionary().markerSize + 2
+            side = max(float(np.percentile(sides, 25)), 1.0)
+            self._scale_hint = float(np.clip(self.cfg.px_per_bit * bits / side, 0.25, 1.0))
+            s = _quantize_scale(self._scale_hint, up=True)
+            self._window = int(np.clip(0.4 * np.median(sides) * s, 5, 23)) | 1
         pts = np.concatenate([corners] + list(mcs or []))
         lo, hi = pts.min(0), pts.max(0)
         pad = 0.25 * (hi - lo) + 24
@@ -154,9 +191,7 @@ def detect_frames(frames, board: BoardSpec, cfg: DetectorConfig = DetectorConfig
     for f in frames:
         gray = to_gray8(f.image)
         ids, corners, n_markers = det.detect(gray)
-        small = gray if max(gray.shape) <= 1000 else cv2.resize(gray, None, fx=0.5, fy=0.5,
-                                                                  interpolation=cv2.INTER_AREA)
-        out.append(Detection(f.index, f.time, f.name, ids, corners, n_markers, sharpness(small)))
+        out.append(Detection(f.index, f.time, f.name, ids, corners, n_markers, sharpness(gray)))
         if tick is not None:
             tick()
     return out
@@ -170,31 +205,44 @@ class _Segment:
     cfg: DetectorConfig
 
 
-def _detect_segment(seg: _Segment, queue=None) -> list[Detection]:
-    """Worker: decode and detect one contiguous segment (runs in a spawned process)."""
+_progress_queue = None  # set in each worker process by _init_worker
+
+
+def _init_worker(queue) -> None:
+    global _progress_queue
+    _progress_queue = queue
     cv2.setNumThreads(1)  # one process per core already
-    tick = (lambda: queue.put(1)) if queue is not None else None
-    return detect_frames(seg.source.read(seg.indices, gray=True), seg.board, seg.cfg, tick)
+
+
+def _detect_segment(seg: _Segment) -> list[Detection]:
+    """Worker: decode and detect one contiguous segment (runs in a spawned process)."""
+    seg.source.single_thread = True
+    q = _progress_queue
+    return detect_frames(seg.source.read(seg.indices, gray=True), seg.board, seg.cfg,
+                         (lambda: q.put(1)) if q is not None else None)
 
 
 def detect_footage(source: FootageSource, indices: Sequence[int], board: BoardSpec,
                    cfg: DetectorConfig = DetectorConfig(), workers: int = 1,
                    tick: Callable[[int], None] | None = None) -> list[Detection]:
     """Detect the board in frames ``indices`` of ``source``; ``workers`` > 1 splits the footage
-    into that many contiguous segments, each decoded and detected in its own spawned process."""
+    into that many contiguous segments, each decoded and detected in its own spawned process
+    (one decoding thread each). In one process, PyAV's decoding threads run ahead of detection."""
     indices = list(indices)
-    workers = max(1, min(workers, len(indices) // 8 or 1))
+    # A spawned worker costs about a second to start: only worth it on longer footage.
+    workers = max(1, min(workers, len(indices) // 60 or 1))
     if workers == 1:
         return detect_frames(source.read(indices, gray=True), board, cfg,
                              (lambda: tick(1)) if tick else None)
     chunks = [tuple(c.tolist()) for c in np.array_split(np.asarray(indices), workers)]
     ctx = mp.get_context("spawn")
-    with mp.Manager() as manager, ProcessPoolExecutor(workers, mp_context=ctx) as pool:
-        queue = manager.Queue()
-        futures = [pool.submit(_detect_segment, _Segment(source, c, board, cfg), queue) for c in chunks]
+    queue = ctx.Queue()
+    with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
+                             initargs=(queue,)) as pool:
+        futures = [pool.submit(_detect_segment, _Segment(source, c, board, cfg)) for c in chunks]
         while True:
             try:
-                queue.get(timeout=0.2)
+                queue.get(timeout=0.1)
             except queue_mod.Empty:
                 if all(f.done() for f in futures):
                     break
@@ -202,6 +250,7 @@ def detect_footage(source: FootageSource, indices: Sequence[int], board: BoardSp
             if tick:
                 tick(1)
         results = [f.result() for f in futures]
+    queue.close()
     return [d for r in results for d in r]
 
 

@@ -248,3 +248,32 @@ def test_device_poses_fill_frames_without_board():
     assert out[6].status == "arkit" and out[6].posed
     np.testing.assert_allclose(out[6].c2w, hidden.c2w, atol=1e-9)
     assert [p.status for p in out].count("posed") == 7
+
+
+def test_worker_processes_return_every_frame_in_order(tmp_path, rendered):
+    """Two spawned workers split the footage and return the same detections as one process."""
+    from fractions import Fraction
+
+    import av
+
+    from dbb_capture.io import VideoSource
+    from dbb_capture.poses import detect_footage
+
+    _, views = rendered
+    path = tmp_path / "v.mp4"
+    with av.open(str(path), "w") as c:
+        s = c.add_stream("libx264", rate=Fraction(30))
+        s.width, s.height, s.pix_fmt = 480, 360, "yuv420p"
+        s.options = {"crf": "12", "g": "30"}
+        for i in range(120):
+            g = views[(i // 30) % len(views)][1]
+            for p in s.encode(av.VideoFrame.from_ndarray(np.stack([g] * 3, -1), format="rgb24")):
+                c.mux(p)
+        for p in s.encode():
+            c.mux(p)
+    src = VideoSource(path)
+    ticks = []
+    two = detect_footage(src, range(120), BOARD, workers=2, tick=ticks.append)
+    assert [d.index for d in two] == list(range(120)) and sum(ticks) == 120
+    assert [d.time for d in two] == pytest.approx(np.arange(120) / 30)
+    assert min(d.n_corners for d in two) >= 12
