@@ -73,13 +73,13 @@ class FieldConfig:
 
     mode: str = "object"            # "object" (bounded, RGBA) or "scene" (unbounded, contracted)
     sh_degree: int = 2
-    res_start: int = 64             # lattice points per axis at the first stage
+    res_start: int = 32             # lattice points per axis at the first stage
     res_max: int = 512              # coarse-to-fine doubles up to this
     max_points: int = 6_000_000     # never upsample past this many active points (memory, time)
     step_cells: float = 0.5         # sample spacing along rays
     batch_rays: int = 4096
-    lr_density: float = 0.1
-    lr_sh: float = 0.03
+    lr_density: float = 1.0
+    lr_sh: float = 0.3
     lr_final_ratio: float = 0.1     # learning rates decay exponentially to this fraction
     tv_density: float = 1e-4        # total-variation weights (mean squared neighbour difference)
     tv_sh: float = 1e-4
@@ -431,6 +431,14 @@ def render_rays(field: VoxelField, origins: torch.Tensor, dirs: torch.Tensor,
     idx = valid.nonzero()
     bi, si = idx[:, 0], idx[:, 1]
     rows, w = field._corners(x[bi, si])
+    if torch.is_grad_enabled():
+        # Pass 1 without autograd: drop samples hidden behind opaque matter (a suffix of each
+        # ray), so the differentiable pass only pays for what can still be seen.
+        with torch.no_grad():
+            raw = torch.bmm(w[:, None, :], field.density.data[rows])[:, 0, 0]
+            tau0 = torch.zeros_like(t).index_put((bi, si), F.softplus(raw + field.act_shift) * delta[bi, si])
+            seen = (torch.cumsum(tau0, -1) - tau0)[bi, si] < -math.log(field.cfg.weight_eps)
+        bi, si, rows, w = bi[seen], si[seen], rows[seen], w[seen]
     sig = field.sigma_from(rows, w)
     tau = torch.zeros_like(t).index_put((bi, si), sig * delta[bi, si])
     # Transmittance before each sample: exp of minus the optical depth accumulated so far.
