@@ -1,0 +1,936 @@
+"""The dynamic-object training stage: a viewpoint-conditioned recurrent state-space model (RSSM).
+
+The model (PlaNet family, thesis chapter 6) keeps a deterministic GRU state ``h`` and a
+Gaussian stochastic state ``z``. What it is built to avoid, and how:
+
+- *Motion that depends on the viewpoint* (freezing when the viewer stands still): the
+  transition ``h_t = GRU(h_{t-1}, z_{t-1})``, ``z_t ~ p(z_t | h_t)`` never sees the viewpoint;
+  only the decoder ``x_t = dec(h_t, z_t, PE(view_t))`` does. The object's own motion cannot
+  stall or repeat because of where the camera is (structural, tested).
+- *A prior that never learns slow motion*: the run-time rollout uses the prior only, so the
+  prior is trained the way it runs: every batch also rolls the prior open-loop from the first
+  frame's posterior (sampled states), with a reconstruction loss on those frames and latent
+  overshooting (KL from the stopped-gradient filtering posterior to the open-loop prior).
+- *Free nats and KL balancing done right*: the dynamics term KL(sg(q) || p), which trains the
+  prior, is never clamped (a clamp removes its gradient exactly when the per-step KL is small,
+  i.e. for slow motion); free nats apply to the batch-mean representation term KL(q || sg(p))
+  only, as max(KL, free nats). Balance 0.8 / 0.2 (Dreamer).
+- *Shrinking motion at run time*: the stochastic state is sampled, not replaced by its mean.
+
+Images are RGBA; losses and metrics use premultiplied colour and alpha in [0, 1] (colour where
+alpha is 0 is undefined in straight RGBA and must not count).
+
+A run folder (``dbb-train rssm DATASET -o RUN``) describes itself in ``run.json``:
+
+- ``model.pt``: ``{"config": RssmConfig fields, "state_dict": ...}`` (plain torch save);
+- ``stepper.ts``: TorchScript :class:`Stepper` (``start(rgba, view)``, ``step(h, z, view)``);
+- ``checkpoint.pt``: model, optimiser, step and history, for ``--resume``;
+- ``report/``: ``eval.json`` (per-step PSNR/SSIM vs baselines, motion-energy ratio),
+  ``per_step.png``, ``motion.png``, ``curve.png``, ``strip.png`` (truth / prediction / near),
+  ``rollout.png`` (150 steps at a still viewpoint).
+
+Checkpoints during training go to ``.<RUN>.work/`` beside RUN (like the PlenOctree stage).
+"""
+
+from __future__ import annotations
+
+import math
+import shutil
+import time
+from dataclasses import asdict, dataclass, field, fields, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from .crops import sequence_windows
+from .datasets import find_dataset_file, load_dataset, load_rgba
+from .errors import DbbError
+from .outputs import atomic_dir, read_json, write_json
+from .progress import console, progress
+
+RUN_FORMAT = "dbb-rssm-run"
+SIZES = (32, 64, 128, 256)
+
+
+# --------------------------------------------------------------------------- configuration
+@dataclass(frozen=True)
+class RssmConfig:
+    """Model and loss settings. Sizes in pixels, KL in nats."""
+
+    size: int = 64                 # square RGBA frames, a power of two in SIZES
+    deter: int = 64                # deterministic GRU state
+    stoch: int = 64                # Gaussian stochastic state
+    hidden: int = 256              # MLP width
+    embed: int = 256               # encoder output
+    enc_depth: int = 16            # channels of the first encoder conv (doubling, capped at 256)
+    dec_depth: int = 16            # decoder channels at 32 px (halving per doubling, >= 8)
+    view_freqs: int = 4            # positional-encoding octaves of azimuth and elevation
+    min_std: float = 0.1           # std = softplus(x) + min_std (PlaNet)
+    free_nats: float = 1.0
+    kl_balance: float = 0.8        # weight of the dynamics (prior-training) term
+    kl_scale: float = 1.0
+    overshoot_scale: float = 1.0   # latent overshooting along the open-loop rollout
+    open_loop_scale: float = 1.0   # reconstruction of the open-loop (prior-only) frames
+
+    def validate(self) -> None:
+        if self.size not in SIZES:
+            raise DbbError(f"--size must be one of {', '.join(map(str, SIZES))}, not {self.size}")
+        for f in ("deter", "stoch", "hidden", "embed", "enc_depth", "dec_depth", "view_freqs"):
+            if getattr(self, f) < 1:
+                raise DbbError(f"RSSM {f} must be positive")
+
+    @classmethod
+    def from_json(cls, d: dict) -> "RssmConfig":
+        names = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in names})
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """How long and how to train. ``minutes``/``steps``: the first limit reached wins."""
+
+    minutes: float | None = None
+    steps: int | None = None
+    batch: int = 8
+    lr: float = 1e-3
+    adam_eps: float = 1e-4
+    grad_clip: float = 100.0
+    checkpoint_seconds: float = 60.0
+    seed: int = 0
+    max_bad_steps: int = 20        # consecutive non-finite steps before giving up
+
+
+# --------------------------------------------------------------------------- viewpoint encoding
+def view_encoding(view: torch.Tensor, freqs: int) -> torch.Tensor:
+    """Positional encoding of viewpoints (..., 3) [azimuth_deg, elevation_deg, distance_m] -> (..., 4 * freqs).
+
+    sin/cos of azimuth and elevation at octaves 1, 2, 4, ...; distance is not used (the crops
+    are distance-normalized, thesis 6.1.1).
+    """
+    ang = view[..., :2] * (math.pi / 180.0)
+    k = 2.0 ** torch.arange(freqs, dtype=view.dtype, device=view.device)
+    a = ang[..., :, None] * k                                    # (..., 2, F)
+    return torch.cat([torch.sin(a), torch.cos(a)], -1).flatten(-2)
+
+
+# --------------------------------------------------------------------------- networks
+def _enc_channels(cfg: RssmConfig) -> list[int]:
+    n = int(math.log2(cfg.size // 4))
+    return [min(cfg.enc_depth * 2 ** i, 256) for i in range(n)]
+
+
+def _dec_channels(cfg: RssmConfig) -> list[int]:
+    """Channels at resolutions 4, 8, ..., size/2 (the last conv makes the 4 RGBA channels)."""
+    n = int(math.log2(cfg.size // 4))
+    return [max(8, min(128, cfg.dec_depth * 32 // (4 * 2 ** i))) for i in range(n)]
+
+
+class Encoder(nn.Module):
+    """Premultiplied RGBA (B, 4, S, S) in [0, 1] -> embedding (B, embed)."""
+
+    def __init__(self, cfg: RssmConfig):
+        super().__init__()
+        layers: list[nn.Module] = []
+        c_in = 4
+        for c in _enc_channels(cfg):
+            layers += [nn.Conv2d(c_in, c, 4, 2, 1), nn.SiLU()]
+            c_in = c
+        self.convs = nn.Sequential(*layers)
+        self.out = nn.Linear(c_in * 16, cfg.embed)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return F.silu(self.out(self.convs(x - 0.5).flatten(1)))
+
+
+class Decoder(nn.Module):
+    """Features (B, deter + stoch + 4 * view_freqs) -> straight RGBA (B, 4, S, S) in [0, 1]."""
+
+    def __init__(self, cfg: RssmConfig):
+        super().__init__()
+        ch = _dec_channels(cfg)
+        self.c0 = ch[0]
+        self.fc = nn.Sequential(nn.Linear(cfg.deter + cfg.stoch + 4 * cfg.view_freqs, cfg.hidden), nn.SiLU(),
+                                nn.Linear(cfg.hidden, ch[0] * 16))
+        layers: list[nn.Module] = []
+        for c_in, c_out in zip(ch, ch[1:] + [4]):
+            layers += [nn.ConvTranspose2d(c_in, c_out, 4, 2, 1), nn.SiLU()]
+        self.convs = nn.Sequential(*layers[:-1])
+
+    def forward(self, feat: torch.Tensor) -> torch.Tensor:
+        x = self.fc(feat).view(-1, self.c0, 4, 4)
+        return torch.sigmoid(self.convs(F.silu(x)))
+
+
+def _gauss(stats: torch.Tensor, min_std: float) -> tuple[torch.Tensor, torch.Tensor]:
+    mean, raw = stats.chunk(2, -1)
+    return mean, F.softplus(raw) + min_std
+
+
+class Rssm(nn.Module):
+    """The model. The transition (``gru``, ``prior``) takes no viewpoint input at all."""
+
+    def __init__(self, cfg: RssmConfig):
+        super().__init__()
+        cfg.validate()
+        self.cfg = cfg
+        self.encoder = Encoder(cfg)
+        self.decoder = Decoder(cfg)
+        self.z_in = nn.Sequential(nn.Linear(cfg.stoch, cfg.hidden), nn.SiLU())
+        self.gru = nn.GRUCell(cfg.hidden, cfg.deter)
+        self.prior = nn.Sequential(nn.Linear(cfg.deter, cfg.hidden), nn.SiLU(), nn.Linear(cfg.hidden, 2 * cfg.stoch))
+        self.post = nn.Sequential(nn.Linear(cfg.deter + cfg.embed + 4 * cfg.view_freqs, cfg.hidden), nn.SiLU(),
+                                  nn.Linear(cfg.hidden, 2 * cfg.stoch))
+
+    # -- pieces shared by training and the stepper
+    def transition(self, h: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """Next deterministic state (B, deter) from (B, deter), (B, stoch)."""
+        return self.gru(self.z_in(z), h)
+
+    def prior_stats(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return _gauss(self.prior(h), self.cfg.min_std)
+
+    def post_stats(self, h: torch.Tensor, emb: torch.Tensor, pe: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return _gauss(self.post(torch.cat([h, emb, pe], -1)), self.cfg.min_std)
+
+    def decode(self, h: torch.Tensor, z: torch.Tensor, pe: torch.Tensor) -> torch.Tensor:
+        return self.decoder(torch.cat([h, z, pe], -1))
+
+
+# --------------------------------------------------------------------------- losses
+def _kl(m1, s1, m2, s2) -> torch.Tensor:
+    """KL(N(m1, s1) || N(m2, s2)) summed over the last axis (nats)."""
+    return (torch.log(s2 / s1) + (s1 ** 2 + (m1 - m2) ** 2) / (2 * s2 ** 2) - 0.5).sum(-1)
+
+
+def premultiply(rgba: torch.Tensor) -> torch.Tensor:
+    """Straight RGBA (..., 4, H, W) -> premultiplied colour and alpha, same shape."""
+    return torch.cat([rgba[..., :3, :, :] * rgba[..., 3:4, :, :], rgba[..., 3:4, :, :]], -3)
+
+
+def _rec_loss(pred_straight: torch.Tensor, target_pm: torch.Tensor) -> torch.Tensor:
+    """Squared error summed over pixels (Gaussian, unit variance), mean over frames."""
+    return ((premultiply(pred_straight) - target_pm) ** 2).flatten(1).sum(1).mean()
+
+
+def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[torch.Tensor, dict]:
+    """Training loss of a batch of sequences.
+
+    ``x``: premultiplied RGBA (B, T+1, 4, S, S) in [0, 1], frame 0 the context;
+    ``views``: (B, T+1, 3) [azimuth_deg, elevation_deg, distance_m]. Returns (loss, parts).
+    """
+    cfg = model.cfg
+    B, T1 = x.shape[:2]
+    pe = view_encoding(views, cfg.view_freqs)
+    emb = model.encoder(x.flatten(0, 1)).view(B, T1, -1)
+    h = x.new_zeros(B, cfg.deter)
+    hs, zs, kl_dyn, kl_rep, post_m, post_s = [], [], [], [], [], []
+    z = None
+    for t in range(T1):                                  # filtering: posterior at every step
+        if z is not None:
+            h = model.transition(h, z)
+        pm, ps = model.prior_stats(h)
+        qm, qs = model.post_stats(h, emb[:, t], pe[:, t])
+        z = qm + qs * torch.randn_like(qs)
+        hs.append(h)
+        zs.append(z)
+        post_m.append(qm)
+        post_s.append(qs)
+        kl_dyn.append(_kl(qm.detach(), qs.detach(), pm, ps).mean())
+        kl_rep.append(_kl(qm, qs, pm.detach(), ps.detach()).mean())
+    # Free nats on the representation term only (per step, batch mean): the prior always learns.
+    dyn = torch.stack(kl_dyn).mean()
+    rep = torch.clamp(torch.stack(kl_rep), min=cfg.free_nats).mean()
+    kl = cfg.kl_balance * dyn + (1 - cfg.kl_balance) * rep
+    feat_h, feat_z = torch.stack(hs, 1).flatten(0, 1), torch.stack(zs, 1).flatten(0, 1)
+    rec = _rec_loss(model.decode(feat_h, feat_z, pe.flatten(0, 1)), x.flatten(0, 1))
+    # Open loop, the way it runs: from the first frame's posterior sample, prior samples only.
+    ho, zo = hs[0], zs[0]
+    ol_h, ol_z, over = [], [], []
+    for t in range(1, T1):
+        ho = model.transition(ho, zo)
+        pm, ps = model.prior_stats(ho)
+        zo = pm + ps * torch.randn_like(ps)
+        ol_h.append(ho)
+        ol_z.append(zo)
+        over.append(_kl(post_m[t].detach(), post_s[t].detach(), pm, ps).mean())
+    overshoot = torch.stack(over).mean()
+    ol = _rec_loss(model.decode(torch.stack(ol_h, 1).flatten(0, 1), torch.stack(ol_z, 1).flatten(0, 1),
+                                pe[:, 1:].flatten(0, 1)), x[:, 1:].flatten(0, 1))
+    loss = rec + cfg.kl_scale * kl + cfg.overshoot_scale * overshoot + cfg.open_loop_scale * ol
+    parts = {"loss": loss.item(), "rec": rec.item(), "open_loop": ol.item(), "kl_dyn": dyn.item(),
+             "kl_rep": torch.stack(kl_rep).mean().item(), "overshoot": overshoot.item()}
+    return loss, parts
+
+
+# --------------------------------------------------------------------------- run-time stepper
+class Stepper(nn.Module):
+    """Run-time API, TorchScript-exportable.
+
+    ``start(rgba, view) -> (h, z)``: the state after seeing the first frame (straight RGBA
+    (B, 4, S, S) in [0, 1], view (B, 3) = [azimuth_deg, elevation_deg, distance_m]).
+    ``step(h, z, view) -> (h, z, rgba)``: advance one frame (the transition ignores ``view``),
+    sample the stochastic state (``temperature`` scales its std; 0 gives the mean) and decode
+    the next straight RGBA frame as seen from ``view``.
+    """
+
+    def __init__(self, model: Rssm, temperature: float = 1.0):
+        super().__init__()
+        self.encoder = model.encoder
+        self.decoder = model.decoder
+        self.z_in = model.z_in
+        self.gru = model.gru
+        self.prior = model.prior
+        self.post = model.post
+        self.min_std = float(model.cfg.min_std)
+        self.freqs = int(model.cfg.view_freqs)
+        self.deter = int(model.cfg.deter)
+        self.size = int(model.cfg.size)
+        self.temperature = float(temperature)
+
+    def _pe(self, view: torch.Tensor) -> torch.Tensor:
+        ang = view[:, :2] * (math.pi / 180.0)
+        k = torch.pow(2.0, torch.arange(self.freqs, dtype=view.dtype, device=view.device))
+        a = ang[:, :, None] * k
+        return torch.cat([torch.sin(a), torch.cos(a)], -1).flatten(1)
+
+    @torch.jit.export
+    def start(self, rgba: torch.Tensor, view: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        pm = torch.cat([rgba[:, :3] * rgba[:, 3:4], rgba[:, 3:4]], 1)
+        emb = self.encoder(pm)
+        h = torch.zeros(rgba.shape[0], self.deter, dtype=rgba.dtype, device=rgba.device)
+        mean, raw = self.post(torch.cat([h, emb, self._pe(view)], -1)).chunk(2, -1)
+        std = F.softplus(raw) + self.min_std
+        return h, mean + self.temperature * std * torch.randn_like(std)
+
+    @torch.jit.export
+    def step(self, h: torch.Tensor, z: torch.Tensor, view: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        h = self.gru(self.z_in(z), h)
+        mean, raw = self.prior(h).chunk(2, -1)
+        std = F.softplus(raw) + self.min_std
+        z = mean + self.temperature * std * torch.randn_like(std)
+        rgba = self.decoder(torch.cat([h, z, self._pe(view)], -1))
+        return h, z, rgba
+
+    def forward(self, h: torch.Tensor, z: torch.Tensor, view: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        return self.step(h, z, view)
+
+
+def script_stepper(model: Rssm, temperature: float = 1.0) -> torch.jit.ScriptModule:
+    """The TorchScript stepper of ``model`` (on CPU, eval mode)."""
+    return torch.jit.script(Stepper(model, temperature).cpu().eval())
+
+
+@torch.no_grad()
+def rollout(stepper, first: torch.Tensor, views: torch.Tensor) -> torch.Tensor:
+    """Open-loop frames from ``first`` (B, 4, S, S) straight RGBA; ``views`` (B, T+1, 3) incl. frame 0.
+
+    Returns straight RGBA (B, T, 4, S, S) for frames 1..T.
+    """
+    h, z = stepper.start(first, views[:, 0])
+    out = []
+    for t in range(1, views.shape[1]):
+        h, z, x = stepper.step(h, z, views[:, t])
+        out.append(x)
+    return torch.stack(out, 1)
+
+
+# --------------------------------------------------------------------------- data
+@dataclass
+class SequenceData:
+    """Frames of a crops.json dataset in memory, and the sequence windows over them."""
+
+    source: Path
+    rgba: np.ndarray               # (N, S, S, 4) uint8 straight RGBA
+    views: np.ndarray              # (N, 3) float32 [azimuth_deg, elevation_deg, distance_m]
+    splits: np.ndarray             # (N,) str
+    times: np.ndarray              # (N,) seconds
+    windows: list[tuple[int, str]]  # (start, split)
+    length: int                    # frames per window (1 context + predicted)
+    meta: dict = field(default_factory=dict)
+
+    def starts(self, split: str) -> np.ndarray:
+        return np.array([s for s, sp in self.windows if sp == split], dtype=np.int64)
+
+
+def _resize_rgba(rgba: np.ndarray, size: int) -> np.ndarray:
+    """Straight RGBA float (h, w, 4) -> (size, size, 4), averaging premultiplied colour."""
+    if rgba.shape[0] == size and rgba.shape[1] == size:
+        return rgba
+    pm = np.concatenate([rgba[..., :3] * rgba[..., 3:4], rgba[..., 3:4]], -1)
+    interp = cv2.INTER_AREA if rgba.shape[0] > size else cv2.INTER_LINEAR
+    pm = cv2.resize(pm, (size, size), interpolation=interp)
+    a = pm[..., 3:4]
+    return np.concatenate([np.where(a > 1e-6, pm[..., :3] / np.maximum(a, 1e-6), 0.0).clip(0, 1), a], -1)
+
+
+def load_sequences(dataset: Path, size: int = 64) -> SequenceData:
+    """Read ``crops.json`` (RGBA crops, per-frame ``viewpoint``, ``split``, ``time``, ``sequences``).
+
+    Windows come from the file's ``sequences``; a file without them gets windows from the frame
+    times (:func:`dbb_capture.crops.sequence_windows`, 11 frames).
+    """
+    src = find_dataset_file(Path(dataset))
+    if src.name != "crops.json":
+        raise DbbError(f"{dataset}: the RSSM trains on a preprocess dataset (crops.json), found {src.name}")
+    meta = read_json(src, "dataset")
+    ds = load_dataset(src)
+    raw = meta["frames"]
+    views, times = [], []
+    for i, f in enumerate(raw):
+        vp = f.get("viewpoint")
+        try:
+            views.append([float(vp["azimuth_deg"]), float(vp["elevation_deg"]), float(vp["distance_m"])])
+        except (TypeError, KeyError, ValueError):
+            raise DbbError(f"{src} frame {i}: needs viewpoint {{azimuth_deg, elevation_deg, distance_m}}") from None
+        if f.get("time") is None:
+            raise DbbError(f"{src} frame {i}: needs time (seconds)")
+        times.append(float(f["time"]))
+    splits = np.array([fr.split for fr in ds.frames])
+    length = int(meta.get("sequence_length", 11))
+    if "sequences" in meta:
+        windows = [(int(s["start"]), str(s["split"])) for s in meta["sequences"]]
+    else:
+        windows = sequence_windows(np.array(times), splits, length)
+    if any(s < 0 or s + length > len(raw) for s, _ in windows):
+        raise DbbError(f"{src}: a sequence window runs past the last frame")
+    if not any(sp == "train" for _, sp in windows):
+        raise DbbError(f"{src}: no training sequences of {length} consecutive frames")
+    imgs = np.empty((len(raw), size, size, 4), np.uint8)
+    with progress(transient=True) as prog:
+        task = prog.add_task("load crops", total=len(raw), info="")
+        for i, fr in enumerate(ds.frames):
+            imgs[i] = np.round(_resize_rgba(load_rgba(fr), size) * 255).astype(np.uint8)
+            prog.update(task, advance=1)
+    return SequenceData(src, imgs, np.array(views, np.float32), splits, np.array(times), windows, length,
+                        {k: v for k, v in meta.items() if k != "frames"})
+
+
+def _batch(data: SequenceData, starts: np.ndarray, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """Premultiplied RGBA (B, L, 4, S, S) float and views (B, L, 3) of windows starting at ``starts``."""
+    idx = starts[:, None] + np.arange(data.length)[None]
+    x = torch.from_numpy(data.rgba[idx]).to(device).permute(0, 1, 4, 2, 3).float() / 255.0
+    return premultiply(x), torch.from_numpy(data.views[idx]).to(device)
+
+
+# --------------------------------------------------------------------------- training
+@dataclass
+class TrainState:
+    model: Rssm
+    opt: torch.optim.Optimizer
+    step: int = 0
+    seconds: float = 0.0
+    bad_steps: int = 0                      # non-finite losses or gradients skipped, in total
+    history: list[dict] = field(default_factory=list)
+
+    def save(self, path: Path) -> None:
+        tmp = Path(path).with_suffix(".tmp")
+        torch.save({"config": asdict(self.model.cfg), "model": self.model.state_dict(),
+                    "opt": self.opt.state_dict(), "step": self.step, "seconds": self.seconds,
+                    "bad_steps": self.bad_steps, "history": self.history}, tmp)
+        tmp.replace(path)
+
+    @classmethod
+    def load(cls, path: Path, tcfg: TrainConfig, device: torch.device) -> "TrainState":
+        try:
+            ck = torch.load(path, map_location=device, weights_only=False)
+            model = Rssm(RssmConfig.from_json(ck["config"])).to(device)
+            model.load_state_dict(ck["model"])
+        except (OSError, KeyError, RuntimeError) as e:
+            raise DbbError(f"cannot read RSSM checkpoint {path}: {e}") from None
+        st = cls(model, _optimizer(model, tcfg), ck["step"], ck["seconds"], ck.get("bad_steps", 0), ck["history"])
+        st.opt.load_state_dict(ck["opt"])
+        return st
+
+
+def _optimizer(model: Rssm, tcfg: TrainConfig) -> torch.optim.Optimizer:
+    return torch.optim.Adam(model.parameters(), lr=tcfg.lr, eps=tcfg.adam_eps)
+
+
+def pick_device() -> torch.device:
+    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+
+def train(state: TrainState, data: SequenceData, tcfg: TrainConfig, ckpt: Path | None = None,
+          on_step=None) -> TrainState:
+    """Train until ``tcfg.minutes`` (wall clock, over all sessions) or ``tcfg.steps`` is reached.
+
+    A step whose loss or gradient is not finite is skipped (optimiser untouched) and counted;
+    ``max_bad_steps`` in a row end training with a :class:`DbbError`.
+    """
+    model, device = state.model, next(state.model.parameters()).device
+    starts = data.starts("train")
+    rng = np.random.default_rng(tcfg.seed + state.step)
+    last_ckpt = time.perf_counter()
+    t_prev = time.perf_counter()
+    in_a_row = 0
+    model.train()
+    while not _done(state, tcfg):
+        pick = starts[rng.integers(0, len(starts), tcfg.batch)]
+        x, v = _batch(data, pick, device)
+        loss, parts = sequence_loss(model, x, v)
+        state.opt.zero_grad(set_to_none=True)
+        ok = bool(torch.isfinite(loss))
+        if ok:
+            loss.backward()
+            gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), tcfg.grad_clip)
+            ok = bool(torch.isfinite(gnorm))
+        if ok:
+            state.opt.step()
+            in_a_row = 0
+        else:
+            state.bad_steps += 1
+            in_a_row += 1
+            if in_a_row >= tcfg.max_bad_steps:
+                raise DbbError(f"training diverged: {in_a_row} non-finite steps in a row at step {state.step} "
+                               "(last good checkpoint kept; try a lower learning rate)")
+        now = time.perf_counter()
+        state.seconds += now - t_prev
+        t_prev = now
+        state.step += 1
+        if ok and (state.step % 10 == 0 or state.step == 1 or _done(state, tcfg)):
+            state.history.append({"step": state.step, "seconds": round(state.seconds, 2),
+                                  **{k: round(v, 4) for k, v in parts.items()}})
+        if on_step is not None:
+            on_step(state, parts if ok else None)
+        if ckpt is not None and now - last_ckpt > tcfg.checkpoint_seconds:
+            state.save(ckpt)
+            last_ckpt = now
+    if ckpt is not None:
+        state.save(ckpt)
+    return state
+
+
+def _done(state: TrainState, tcfg: TrainConfig) -> bool:
+    if tcfg.steps is not None and state.step >= tcfg.steps:
+        return True
+    return tcfg.minutes is not None and state.seconds >= 60 * tcfg.minutes
+
+
+def _fraction(state: TrainState, tcfg: TrainConfig) -> float:
+    f = 0.0
+    if tcfg.steps:
+        f = max(f, state.step / tcfg.steps)
+    if tcfg.minutes:
+        f = max(f, state.seconds / (60 * tcfg.minutes))
+    return min(f, 1.0)
+
+
+# --------------------------------------------------------------------------- evaluation
+def psnr(pred: np.ndarray, truth: np.ndarray) -> float:
+    """PSNR (dB) of premultiplied RGBA arrays in [0, 1] of equal shape."""
+    mse = float(np.mean((pred.astype(np.float64) - truth) ** 2))
+    return 99.0 if mse <= 1e-10 else -10 * math.log10(mse)
+
+
+def ssim(pred: np.ndarray, truth: np.ndarray) -> float:
+    """SSIM of premultiplied RGBA (S, S, 4) in [0, 1] (channel mean)."""
+    from skimage.metrics import structural_similarity
+
+    return float(structural_similarity(pred, truth, channel_axis=-1, data_range=1.0))
+
+
+def motion_energy(frames: np.ndarray) -> float:
+    """Mean absolute frame-to-frame change of premultiplied RGBA frames (T, ..., S, S)."""
+    return float(np.mean(np.abs(np.diff(frames.astype(np.float64), axis=0)))) if len(frames) > 1 else 0.0
+
+
+def _pm_np(rgba_u8_or_float: np.ndarray) -> np.ndarray:
+    """Straight RGBA (..., S, S, 4) uint8 or float -> premultiplied float32 (..., S, S, 4)."""
+    x = rgba_u8_or_float.astype(np.float32)
+    if rgba_u8_or_float.dtype == np.uint8:
+        x /= 255.0
+    return np.concatenate([x[..., :3] * x[..., 3:4], x[..., 3:4]], -1)
+
+
+def _unit(views: np.ndarray) -> np.ndarray:
+    a, e = np.radians(views[:, 0]), np.radians(views[:, 1])
+    return np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1)
+
+
+def nearest_training_frames(data: SequenceData, views: np.ndarray) -> np.ndarray:
+    """Index of the training frame whose viewing direction is closest to each of ``views`` (M, 3)."""
+    train = np.flatnonzero(data.splits == "train")
+    if len(train) == 0:
+        raise DbbError("no training frames for the 'near' baseline")
+    cos = _unit(views) @ _unit(data.views[train]).T
+    return train[np.argmax(cos, 1)]
+
+
+@dataclass
+class EvalReport:
+    """Open-loop quality on held-out sequences and long-rollout motion (see ``to_json``)."""
+
+    split: str
+    windows: int
+    steps: int
+    psnr: dict[str, list[float]]          # method -> mean PSNR per predicted step (dB)
+    ssim: dict[str, list[float]]
+    motion: dict                          # motion-energy figures of the still-viewpoint rollouts
+    notes: list[str]
+
+    def mean(self, metric: str, method: str) -> float:
+        return float(np.mean(getattr(self, metric)[method]))
+
+    def to_json(self) -> dict:
+        r = lambda xs: [round(float(v), 4) for v in xs]  # noqa: E731
+        return {"split": self.split, "windows": self.windows, "steps": self.steps,
+                "metric_space": "premultiplied RGBA in [0, 1]",
+                "psnr_db": {k: r(v) for k, v in self.psnr.items()},
+                "ssim": {k: r(v) for k, v in self.ssim.items()},
+                "mean_psnr_db": {k: round(self.mean("psnr", k), 3) for k in self.psnr},
+                "mean_ssim": {k: round(self.mean("ssim", k), 4) for k in self.ssim},
+                "psnr_gain_db": {"vs_copy_first": round(self.mean("psnr", "model") - self.mean("psnr", "copy_first"), 3),
+                                 "vs_near": round(self.mean("psnr", "model") - self.mean("psnr", "near"), 3)},
+                "motion": self.motion, "notes": self.notes}
+
+
+def evaluate(stepper, data: SequenceData, max_windows: int = 64, rollout_steps: int = 150,
+             still_truth: np.ndarray | None = None, still_start: tuple[np.ndarray, np.ndarray] | None = None,
+             seed: int = 0) -> tuple[EvalReport, dict]:
+    """Per-step PSNR/SSIM of open-loop predictions vs "near" and copy-first-frame; motion energy.
+
+    ``stepper``: a :class:`Stepper` (eager or TorchScript). The model column samples the
+    stochastic state (as at run time); ``model_mean`` uses temperature 0 where the stepper
+    allows it. Motion: ``rollout_steps`` steps at a still viewpoint from the first frame of a
+    few held-out windows; truth energy is that of ``still_truth`` (T, S, S, 4) straight RGBA
+    uint8 rendered at the same still viewpoint when given (synthetic data; ``still_start`` =
+    (first frame (S, S, 4) uint8, view (3,)) is then the start), otherwise that of the
+    dataset's own consecutive frames (which include the camera's motion). Returns the report
+    and arrays for the figures.
+    """
+    notes = []
+    split = "test"
+    starts = data.starts("test")
+    if len(starts) == 0:
+        split, starts = "train", data.starts("train")
+        notes.append("no test sequences in the dataset: evaluated on training sequences")
+    if len(starts) > max_windows:
+        starts = starts[np.linspace(0, len(starts) - 1, max_windows).round().astype(int)]
+    L = data.length
+    idx = starts[:, None] + np.arange(L)[None]
+    truth = _pm_np(data.rgba[idx])                                   # (W, L, S, S, 4)
+    views = data.views[idx]
+    torch.manual_seed(seed)
+    first = torch.from_numpy(data.rgba[idx[:, 0]]).permute(0, 3, 1, 2).float() / 255.0
+    vt = torch.from_numpy(views)
+    preds = {"model": rollout(stepper, first, vt)}
+    mean_stepper = _with_temperature(stepper, 0.0)
+    if mean_stepper is not None:
+        preds["model_mean"] = rollout(mean_stepper, first, vt)
+    methods: dict[str, np.ndarray] = {k: _pm_np(v.permute(0, 1, 3, 4, 2).numpy()) for k, v in preds.items()}
+    near = nearest_training_frames(data, views[:, 1:].reshape(-1, 3)).reshape(len(starts), L - 1)
+    methods["near"] = _pm_np(data.rgba[near])
+    methods["copy_first"] = np.repeat(truth[:, :1], L - 1, 1)
+    ps = {k: [float(np.mean([psnr(m[w, t], truth[w, t + 1]) for w in range(len(starts))])) for t in range(L - 1)]
+          for k, m in methods.items()}
+    ss = {k: [float(np.mean([ssim(m[w, t], truth[w, t + 1]) for w in range(len(starts))])) for t in range(L - 1)]
+          for k, m in methods.items()}
+    # Long rollouts at a still viewpoint.
+    if still_start is not None:
+        f0 = torch.from_numpy(still_start[0][None]).permute(0, 3, 1, 2).float() / 255.0
+        v0 = torch.from_numpy(np.asarray(still_start[1], np.float32)[None])
+    else:
+        pick = idx[np.linspace(0, len(starts) - 1, min(4, len(starts))).round().astype(int), 0]
+        f0 = torch.from_numpy(data.rgba[pick]).permute(0, 3, 1, 2).float() / 255.0
+        v0 = torch.from_numpy(data.views[pick])
+    still_views = v0[:, None].expand(-1, rollout_steps + 1, -1).contiguous()
+    torch.manual_seed(seed + 1)
+    long = _pm_np(rollout(stepper, f0, still_views).permute(0, 1, 3, 4, 2).numpy())   # (K, T, S, S, 4)
+    pred_e = [motion_energy(long[:, t:t + 2].swapaxes(0, 1)) for t in range(rollout_steps - 1)]
+    if still_truth is not None:
+        tr = _pm_np(still_truth)
+        truth_e = motion_energy(tr)
+        truth_curve = [motion_energy(tr[t:t + 2]) for t in range(len(tr) - 1)]
+        truth_src = "rendered at the still viewpoint"
+    else:
+        diffs = [motion_energy(_pm_np(data.rgba[s:s + L])) for s, _ in data.windows]
+        truth_e = float(np.mean(diffs))
+        truth_curve = None
+        truth_src = "dataset sequences (includes camera motion)"
+        notes.append("motion-energy truth from the dataset's moving-camera sequences, not a still viewpoint")
+    pred_mean = float(np.mean(pred_e))
+    half = len(pred_e) // 2
+    motion = {"steps": rollout_steps, "rollouts": int(f0.shape[0]), "pred_energy": round(pred_mean, 6),
+              "truth_energy": round(truth_e, 6), "truth_source": truth_src,
+              "ratio": round(pred_mean / truth_e, 4) if truth_e > 0 else None,
+              "ratio_first_half": round(float(np.mean(pred_e[:half])) / truth_e, 4) if truth_e > 0 else None,
+              "ratio_second_half": round(float(np.mean(pred_e[half:])) / truth_e, 4) if truth_e > 0 else None}
+    report = EvalReport(split, len(starts), L - 1, ps, ss, motion, notes)
+    figs = {"truth": truth, "methods": methods, "long": long, "pred_curve": pred_e, "truth_curve": truth_curve,
+            "truth_energy": truth_e, "still_truth": None if still_truth is None else _pm_np(still_truth)}
+    return report, figs
+
+
+def _with_temperature(stepper, temperature: float):
+    """The same stepper with another sampling temperature (eager :class:`Stepper` only)."""
+    if isinstance(stepper, Stepper):
+        s = Stepper.__new__(Stepper)
+        s.__dict__.update(stepper.__dict__)
+        s.temperature = temperature
+        return s
+    return None
+
+
+def write_figures(report: EvalReport, figs: dict, history: list[dict], folder: Path) -> None:
+    """``per_step.png``, ``motion.png``, ``curve.png``, ``strip.png``, ``rollout.png`` into ``folder``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    folder.mkdir(parents=True, exist_ok=True)
+    steps = np.arange(1, report.steps + 1)
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    for k in report.psnr:
+        axes[0].plot(steps, report.psnr[k], marker="o", label=k)
+        axes[1].plot(steps, report.ssim[k], marker="o", label=k)
+    axes[0].set(xlabel="open-loop step", ylabel="PSNR (dB)", title=f"PSNR, {report.split} split")
+    axes[1].set(xlabel="open-loop step", ylabel="SSIM", title=f"SSIM, {report.windows} windows")
+    axes[0].legend()
+    fig.tight_layout()
+    fig.savefig(folder / "per_step.png", dpi=100)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(7, 3.2))
+    ax.plot(np.arange(1, len(figs["pred_curve"]) + 1), figs["pred_curve"], label="prediction")
+    if figs["truth_curve"] is not None:
+        ax.plot(np.arange(1, len(figs["truth_curve"]) + 1), figs["truth_curve"], label="truth")
+    else:
+        ax.axhline(figs["truth_energy"], color="k", ls="--", label="truth (dataset mean)")
+    ax.set(xlabel="step", ylabel="mean |frame change|",
+           title=f"motion energy at a still viewpoint, ratio {report.motion['ratio']}")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(folder / "motion.png", dpi=100)
+    plt.close(fig)
+
+    if history:
+        fig, ax = plt.subplots(figsize=(7, 3.2))
+        s = [h["step"] for h in history]
+        for k in ("rec", "open_loop", "kl_dyn", "kl_rep", "overshoot"):
+            ax.plot(s, [max(h[k], 1e-3) for h in history], label=k)
+        ax.set(xlabel="step", yscale="log", title="training losses")
+        ax.legend()
+        fig.tight_layout()
+        fig.savefig(folder / "curve.png", dpi=100)
+        plt.close(fig)
+
+    # Strip: one held-out window, rows truth / model / near, on a grey checker (alpha visible).
+    truth, m = figs["truth"], figs["methods"]
+    rows = [truth[0, 1:], m["model"][0], m["near"][0]]
+    cv2.imwrite(str(folder / "strip.png"), _grid(rows))
+    long = figs["long"][0][::10]
+    rows = [long] + ([figs["still_truth"][1::10][:len(long)]] if figs["still_truth"] is not None else [])
+    cv2.imwrite(str(folder / "rollout.png"), _grid(rows))
+
+
+def _grid(rows: list[np.ndarray]) -> np.ndarray:
+    """Rows of premultiplied RGBA frames (n, S, S, 4) over a checkerboard -> BGR uint8 image."""
+    S = rows[0].shape[1]
+    n = max(len(r) for r in rows)
+    yy, xx = np.mgrid[:S, :S]
+    bg = np.where(((yy // 8) + (xx // 8)) % 2 == 0, 0.55, 0.75)[..., None]
+    out = np.ones((len(rows) * (S + 2), n * (S + 2), 3))
+    for i, r in enumerate(rows):
+        for j, f in enumerate(r):
+            out[i * (S + 2):i * (S + 2) + S, j * (S + 2):j * (S + 2) + S] = f[..., :3] + (1 - f[..., 3:4]) * bg
+    return np.round(out[..., ::-1].clip(0, 1) * 255).astype(np.uint8)
+
+
+# --------------------------------------------------------------------------- run folder
+def _work_dir(out: Path) -> Path:
+    return out.parent / f".{out.name}.work"
+
+
+def train_run(dataset: Path, out: Path, cfg: RssmConfig, tcfg: TrainConfig, resume: bool = False,
+              overwrite: bool = False, quiet: bool = False) -> dict:
+    """Train on ``dataset`` and write the run folder ``out`` atomically; returns run.json."""
+    out = Path(out)
+    if out.exists() and not (overwrite or resume):
+        raise DbbError(f"{out} already exists (pass --overwrite to replace it, --resume to continue it)")
+    if tcfg.minutes is None and tcfg.steps is None:
+        tcfg = replace(tcfg, minutes=15.0)
+    if (tcfg.minutes is not None and tcfg.minutes <= 0) or (tcfg.steps is not None and tcfg.steps <= 0):
+        raise DbbError("--minutes and --steps must be positive")
+    device = pick_device()
+    work = _work_dir(out)
+    ckpt = work / "checkpoint.pt"
+    state = None
+    if resume:
+        src = ckpt if ckpt.is_file() else out / "checkpoint.pt"
+        if not src.is_file():
+            raise DbbError(f"nothing to resume: neither {ckpt} nor {src} exists")
+        state = TrainState.load(src, tcfg, device)
+        cfg = state.model.cfg
+    cfg.validate()
+    data = load_sequences(dataset, cfg.size)
+    torch.manual_seed(tcfg.seed)
+    if state is None:
+        model = Rssm(cfg).to(device)
+        state = TrainState(model, _optimizer(model, tcfg))
+    work.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    with progress() as prog:
+        task = prog.add_task("train rssm", total=100, info="")
+
+        def on_step(st: TrainState, parts: dict | None) -> None:
+            if quiet:
+                return
+            info = ("non-finite step skipped" if parts is None else
+                    f"step {st.step}  rec {parts['rec']:.1f}  open-loop {parts['open_loop']:.1f}  "
+                    f"kl {parts['kl_dyn']:.2f}  over {parts['overshoot']:.2f}")
+            prog.update(task, completed=100 * _fraction(st, tcfg), info=info)
+
+        state = train(state, data, tcfg, ckpt, on_step)
+        prog.update(task, completed=100)
+    meta = write_run(out, state, data, dataset, tcfg, ckpt, wall=time.perf_counter() - t0)
+    shutil.rmtree(work, ignore_errors=True)
+    return meta
+
+
+def write_run(out: Path, state: TrainState, data: SequenceData, dataset: Path, tcfg: TrainConfig,
+              ckpt: Path, wall: float) -> dict:
+    model = state.model.cpu().eval()
+    cfg = model.cfg
+    with atomic_dir(out, overwrite=True) as tmp:
+        shutil.copyfile(ckpt, tmp / "checkpoint.pt")
+        torch.save({"config": asdict(cfg), "state_dict": model.state_dict()}, tmp / "model.pt")
+        script_stepper(model).save(str(tmp / "stepper.ts"))
+        report = run_eval(model, data, tmp / "report", state.history)
+        meta = {
+            "format": RUN_FORMAT, "version": 1, "kind": "dynamic",
+            "dataset": str(Path(dataset).resolve()), "dataset_file": data.source.name,
+            "object": data.meta.get("object"), "up": data.meta.get("up"),
+            "crop": {"size": data.meta.get("crop_size"), "fill": data.meta.get("crop_fill")},
+            "model": {"file": "model.pt", "type": "rssm", "config": asdict(cfg)},
+            "stepper": {"file": "stepper.ts", "format": "TorchScript",
+                        "api": {"start": "(rgba (B,4,S,S) straight RGBA 0..1, view (B,3)) -> (h, z)",
+                                "step": "(h, z, view (B,3)) -> (h, z, rgba (B,4,S,S) straight RGBA 0..1)"},
+                        "view": "[azimuth_deg, elevation_deg, distance_m] of the camera from the object centre "
+                                "(crops.json viewpoint)",
+                        "frame_size": cfg.size, "fps": _fps(data), "temperature": 1.0},
+            "checkpoint": "checkpoint.pt",
+            "training": {"steps": state.step, "seconds": round(state.seconds, 1),
+                         "wall_seconds_this_session": round(wall, 1), "budget_minutes": tcfg.minutes,
+                         "budget_steps": tcfg.steps, "batch": tcfg.batch, "lr": tcfg.lr,
+                         "non_finite_steps_skipped": state.bad_steps,
+                         "train_sequences": int(len(data.starts("train"))),
+                         "test_sequences": int(len(data.starts("test"))),
+                         "final": state.history[-1] if state.history else None},
+            "eval": report.to_json(),
+            "report": "report/",
+        }
+        write_json(tmp / "run.json", meta)
+    return meta
+
+
+def _fps(data: SequenceData) -> float | None:
+    if len(data.times) < 2:
+        return None
+    return round(1.0 / float(np.median(np.diff(data.times))), 4)
+
+
+def run_eval(model: Rssm, data: SequenceData, folder: Path, history: list[dict], **kw) -> EvalReport:
+    """Evaluate ``model`` on ``data`` and write ``eval.json`` and the figures into ``folder``."""
+    report, figs = evaluate(Stepper(model.cpu().eval()), data, **kw)
+    folder.mkdir(parents=True, exist_ok=True)
+    write_json(folder / "eval.json", report.to_json())
+    write_figures(report, figs, history, folder)
+    return report
+
+
+def load_model(run: Path) -> Rssm:
+    """The trained model of a run folder (``model.pt``)."""
+    meta = read_json(Path(run) / "run.json", "run description")
+    if meta.get("format") != RUN_FORMAT:
+        raise DbbError(f"{run} is not an RSSM run (run.json format {meta.get('format')!r})")
+    try:
+        ck = torch.load(Path(run) / meta["model"]["file"], map_location="cpu", weights_only=False)
+        model = Rssm(RssmConfig.from_json(ck["config"]))
+        model.load_state_dict(ck["state_dict"])
+    except (OSError, KeyError, RuntimeError) as e:
+        raise DbbError(f"cannot read the RSSM model of {run}: {e}") from None
+    return model.eval()
+
+
+def eval_run(run: Path, dataset: Path | None = None) -> EvalReport:
+    """Re-run the evaluation of a run folder (on its own dataset unless ``dataset`` is given).
+
+    Rewrites ``report/`` and the ``eval`` entry of ``run.json`` in place.
+    """
+    run = Path(run)
+    model = load_model(run)
+    meta = read_json(run / "run.json", "run description")
+    ds = Path(dataset) if dataset is not None else Path(meta["dataset"])
+    data = load_sequences(ds, model.cfg.size)
+    ck = run / meta.get("checkpoint", "checkpoint.pt")
+    history = torch.load(ck, map_location="cpu", weights_only=False)["history"] if ck.is_file() else []
+    tmp = run / ".report.partial"
+    shutil.rmtree(tmp, ignore_errors=True)
+    report = run_eval(model, data, tmp, history)
+    shutil.rmtree(run / "report", ignore_errors=True)
+    tmp.replace(run / "report")
+    meta["eval"] = report.to_json()
+    write_json(run / "run.json", meta)
+    return report
+
+
+# --------------------------------------------------------------------------- synthetic ground truth
+@dataclass(frozen=True)
+class SyntheticCrops:
+    """A crops.json dataset rendered straight from a synthetic dynamic object (no preprocess)."""
+
+    root: Path
+    still_first: np.ndarray         # (S, S, 4) uint8: first frame of the still-viewpoint truth
+    still_view: np.ndarray          # (3,) its viewpoint [azimuth_deg, elevation_deg, distance_m]
+    still_truth: np.ndarray         # (steps, S, S, 4) uint8: the following frames, same viewpoint
+
+
+def synthetic_crops(out: Path, seconds: float = 60.0, fps: float = 10.0, size: int = 64, seed: int = 0,
+                    still_steps: int = 150, samples: int = 2) -> SyntheticCrops:
+    """Render a dynamic toy along a handheld camera path into ``out/crops/`` + ``out/crops.json``.
+
+    Exactly what the preprocess crop stage writes, with perfect mattes; the last 20 % of the
+    time is the test split. Also renders ``still_steps`` frames after the first test frame
+    at that frame's (now still) viewpoint: the truth of the motion-energy ratio.
+    """
+    from .crops import CropRecord, crop_camera, crops_json, split_by_time
+    from .synth import UP, SynthConfig, camera_path, make_scene, render_object_rgba
+
+    cfg = SynthConfig(kind="dynamic", seconds=seconds, fps=fps, seed=seed, background_seconds=None)
+    rng = np.random.default_rng(seed)
+    scene = make_scene(cfg, rng)
+    times = np.arange(int(round(seconds * fps))) / fps
+    poses = camera_path(cfg, scene, times, rng)
+    intr = cfg.intrinsics()
+    center, radius = scene.obj.bounding_sphere(times[:: max(1, len(times) // 200)])
+    radius *= 1.05
+    splits = split_by_time(times)
+    out = Path(out)
+    (out / "crops").mkdir(parents=True, exist_ok=True)
+    records = []
+    cams = []
+    with progress(transient=True) as prog:
+        task = prog.add_task("render crops", total=len(times), info="")
+        for i, (t, c2w) in enumerate(zip(times, poses)):
+            cam = crop_camera(c2w, intr, center, radius, UP, size, 0.9)
+            rgba = render_object_rgba(scene.obj, cam.intr, cam.c2w, float(t), samples)
+            cv2.imwrite(str(out / "crops" / f"{i:05d}.png"), cv2.cvtColor(rgba, cv2.COLOR_RGBA2BGRA))
+            records.append(CropRecord(f"crops/{i:05d}.png", cam, i, float(t), str(splits[i])))
+            cams.append(cam)
+            prog.update(task, advance=1)
+        write_json(out / "crops.json", crops_json(records, center, radius, UP, size, 0.9))
+        k = int(np.flatnonzero(splits == "test")[0]) if (splits == "test").any() else 0
+        cam = cams[k]
+        still = []
+        task = prog.add_task("render still truth", total=still_steps + 1, info="")
+        for j in range(still_steps + 1):
+            still.append(render_object_rgba(scene.obj, cam.intr, cam.c2w, float(times[k] + j / fps), samples))
+            prog.update(task, advance=1)
+    v = cam.viewpoint
+    return SyntheticCrops(out, still[0], np.array([v.azimuth_deg, v.elevation_deg, v.distance_m], np.float32),
+                          np.stack(still[1:]))

@@ -1,0 +1,179 @@
+"""RSSM stage: shapes, TorchScript stepper, viewpoint-free transition, NaN guard, resume, learning, metrics."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from dbb_capture import rssm
+from dbb_capture.errors import DbbError
+
+# One thread: the CI machine has 2 cores and other tests run beside these.
+torch.set_num_threads(1)
+
+SMALL = rssm.RssmConfig(size=32, deter=16, stoch=16, hidden=64, embed=64, enc_depth=8, dec_depth=8)
+
+
+@pytest.fixture(scope="module")
+def crops(tmp_path_factory):
+    """A 3-second 32x32 crops.json of the synthetic dynamic toy (10 fps), with still-view truth."""
+    return rssm.synthetic_crops(tmp_path_factory.mktemp("rssm") / "ds", seconds=3.0, fps=10, size=32,
+                                still_steps=12, samples=1)
+
+
+@pytest.fixture(scope="module")
+def data(crops):
+    return rssm.load_sequences(crops.root, 32)
+
+
+def test_dataset_reads_crops_json_windows_and_viewpoints(crops, data):
+    doc = json.loads((crops.root / "crops.json").read_text())
+    assert data.rgba.shape == (len(doc["frames"]), 32, 32, 4)
+    assert data.length == 11
+    assert [s for s, _ in data.windows] == [s["start"] for s in doc["sequences"]]
+    assert len(data.starts("train")) > 0 and len(data.starts("test")) == 0  # test split is < 11 frames here
+    assert np.allclose(data.views[5], [doc["frames"][5]["viewpoint"][k]
+                                       for k in ("azimuth_deg", "elevation_deg", "distance_m")], atol=1e-3)
+    assert data.rgba[..., 3].max() == 255 and data.rgba[..., 3].min() == 0    # object with a matte
+
+
+def test_shapes_and_loss_parts():
+    torch.manual_seed(0)
+    m = rssm.Rssm(SMALL)
+    x = torch.rand(2, 11, 4, 32, 32)
+    v = torch.rand(2, 11, 3) * 40
+    loss, parts = rssm.sequence_loss(m, x, v)
+    assert loss.ndim == 0 and math.isfinite(loss.item())
+    assert set(parts) == {"loss", "rec", "open_loop", "kl_dyn", "kl_rep", "overshoot"}
+    st = rssm.Stepper(m)
+    h, z = st.start(torch.rand(3, 4, 32, 32), torch.zeros(3, 3))
+    h, z, out = st.step(h, z, torch.zeros(3, 3))
+    assert h.shape == (3, 16) and z.shape == (3, 16) and out.shape == (3, 4, 32, 32)
+    assert float(out.detach().min()) >= 0 and float(out.detach().max()) <= 1
+    assert rssm.view_encoding(v, 4).shape == (2, 11, 16)
+
+
+def test_torchscript_round_trip_matches_eager(tmp_path):
+    torch.manual_seed(1)
+    m = rssm.Rssm(SMALL).eval()
+    path = tmp_path / "stepper.ts"
+    rssm.script_stepper(m).save(str(path))
+    ts = torch.jit.load(str(path))
+    first, views = torch.rand(2, 4, 32, 32), torch.rand(2, 6, 3) * 60
+    torch.manual_seed(7)
+    eager = rssm.rollout(rssm.Stepper(m), first, views)
+    torch.manual_seed(7)
+    scripted = rssm.rollout(ts, first, views)
+    assert eager.shape == (2, 5, 4, 32, 32)
+    assert torch.allclose(eager, scripted, atol=1e-5)
+
+
+def test_transition_does_not_depend_on_the_viewpoint():
+    m = rssm.Rssm(SMALL).eval()
+    # Structural: nothing in the transition has room for a viewpoint input.
+    assert m.z_in[0].in_features == SMALL.stoch and m.gru.input_size == SMALL.hidden
+    assert m.prior[0].in_features == SMALL.deter
+    st = rssm.Stepper(m)
+    h0, z0 = torch.randn(1, 16), torch.randn(1, 16)
+    torch.manual_seed(3)
+    ha, za, xa = st.step(h0, z0, torch.tensor([[0.0, 20.0, 0.6]]))
+    torch.manual_seed(3)
+    hb, zb, xb = st.step(h0, z0, torch.tensor([[120.0, 60.0, 0.9]]))
+    assert torch.equal(ha, hb) and torch.equal(za, zb)     # same motion
+    assert not torch.allclose(xa, xb)                      # seen from elsewhere
+
+
+def test_nan_guard_skips_bad_steps_and_gives_up_when_diverged(data, monkeypatch):
+    real = rssm.sequence_loss
+    calls = {"n": 0}
+
+    def flaky(model, x, v):
+        calls["n"] += 1
+        loss, parts = real(model, x, v)
+        return (loss * float("nan"), parts) if calls["n"] <= 3 else (loss, parts)
+
+    monkeypatch.setattr(rssm, "sequence_loss", flaky)
+    m = rssm.Rssm(SMALL)
+    tc = rssm.TrainConfig(steps=5, batch=2, max_bad_steps=4)
+    st = rssm.train(rssm.TrainState(m, rssm._optimizer(m, tc)), data, tc)
+    assert st.bad_steps == 3 and st.step == 5
+    assert all(torch.isfinite(p).all() for p in m.parameters())
+    monkeypatch.setattr(rssm, "sequence_loss", lambda model, x, v: (real(model, x, v)[0] * float("nan"), {}))
+    with pytest.raises(DbbError, match="diverged"):
+        rssm.train(rssm.TrainState(m, rssm._optimizer(m, tc)), data, replace_steps(tc, 10))
+
+
+def replace_steps(tc, n):
+    from dataclasses import replace
+
+    return replace(tc, steps=n)
+
+
+def test_tiny_overfit_loss_drops(data):
+    torch.manual_seed(0)
+    m = rssm.Rssm(SMALL)
+    tc = rssm.TrainConfig(steps=40, batch=4, lr=2e-3)
+    st = rssm.train(rssm.TrainState(m, rssm._optimizer(m, tc)), data, tc)
+    first, last = st.history[0], st.history[-1]
+    assert last["rec"] < 0.5 * first["rec"]
+    assert last["open_loop"] < 0.5 * first["open_loop"]
+
+
+def test_run_folder_resume_and_eval(crops, tmp_path):
+    out = tmp_path / "run"
+    meta = rssm.train_run(crops.root, out, SMALL, rssm.TrainConfig(steps=3, batch=2), quiet=True)
+    for f in ("run.json", "model.pt", "stepper.ts", "checkpoint.pt", "report/eval.json", "report/per_step.png",
+              "report/motion.png", "report/strip.png", "report/rollout.png", "report/curve.png"):
+        assert (out / f).is_file(), f
+    assert meta["training"]["steps"] == 3 and meta["model"]["config"]["size"] == 32
+    ev = meta["eval"]
+    assert ev["split"] == "train" and len(ev["psnr_db"]["model"]) == 10
+    assert set(ev["mean_psnr_db"]) == {"model", "model_mean", "near", "copy_first"}
+    with pytest.raises(DbbError, match="already exists"):
+        rssm.train_run(crops.root, out, SMALL, rssm.TrainConfig(steps=3, batch=2), quiet=True)
+    meta2 = rssm.train_run(crops.root, out, SMALL, rssm.TrainConfig(steps=5, batch=2), resume=True, quiet=True)
+    assert meta2["training"]["steps"] == 5
+    assert meta2["training"]["final"]["step"] == 5
+    ts = torch.jit.load(str(out / "stepper.ts"))
+    h, z = ts.start(torch.rand(1, 4, 32, 32), torch.zeros(1, 3))
+    assert ts.step(h, z, torch.zeros(1, 3))[2].shape == (1, 4, 32, 32)
+    rep = rssm.eval_run(out)
+    assert json.loads((out / "run.json").read_text())["eval"]["windows"] == rep.windows
+    assert not (out / ".report.partial").exists()
+
+
+def test_eval_on_a_static_sequence_copy_first_is_perfect(data):
+    still = rssm.SequenceData(data.source, np.repeat(data.rgba[:1], 30, 0), np.repeat(data.views[:1], 30, 0),
+                              np.array(["train"] * 15 + ["test"] * 15), np.arange(30) / 10.0,
+                              [(0, "train"), (15, "test")], 11)
+    rep, figs = rssm.evaluate(rssm.Stepper(rssm.Rssm(SMALL).eval()), still, rollout_steps=8)
+    assert rep.split == "test" and rep.windows == 1
+    assert rep.psnr["copy_first"] == [99.0] * 10 and rep.psnr["near"] == [99.0] * 10
+    assert rep.ssim["copy_first"] == pytest.approx([1.0] * 10)
+    assert rep.motion["truth_energy"] == 0 and rep.motion["ratio"] is None
+    assert rep.mean("psnr", "model") < 40          # an untrained model is not perfect
+
+
+def test_metrics_known_values(crops, data):
+    a, b = np.full((8, 8, 4), 0.5), np.full((8, 8, 4), 0.6)
+    assert rssm.psnr(a, b) == pytest.approx(20.0)
+    assert rssm.motion_energy(np.stack([a, b, a])) == pytest.approx(0.1)
+    # The nearest training frame of a training frame's own viewpoint is that frame (or one seen the same way).
+    idx = rssm.nearest_training_frames(data, data.views[[2, 7]])
+    assert np.allclose(data.views[idx][:, :2], data.views[[2, 7]][:, :2], atol=1.0)
+    # The still-viewpoint truth moves: the toy's arms and head are never still.
+    assert rssm.motion_energy(crops.still_truth.astype(float) / 255) > 1e-3
+
+
+def test_bad_inputs(tmp_path, crops):
+    with pytest.raises(DbbError):
+        rssm.RssmConfig(size=48).validate()
+    (tmp_path / "transforms.json").write_text(json.dumps({"frames": [{"file_path": "a.png"}]}))
+    with pytest.raises(DbbError, match="crops.json"):
+        rssm.load_sequences(tmp_path)
+    with pytest.raises(DbbError, match="nothing to resume"):
+        rssm.train_run(crops.root, tmp_path / "none", SMALL, rssm.TrainConfig(steps=1), resume=True)
