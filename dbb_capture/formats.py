@@ -88,13 +88,15 @@ def write_colmap(folder: Path, intr: Intrinsics, images: Sequence[PosedImage]) -
 
 
 def pose_report(run: PoseRun, board: BoardSpec) -> dict:
-    """Per-frame status, reprojection RMS (px) and corner count, with totals by status."""
+    """Per-frame status, corner count, sharpness (variance of the Laplacian) and reprojection
+    RMS (px), with totals by status."""
     counts: dict[str, int] = {}
     frames = []
+    sharp = {d.index: d.sharpness for d in run.detections}
     for p in run.frames:
         counts[p.status] = counts.get(p.status, 0) + 1
         row = {"name": p.name, "index": p.index, "time": round(p.time, 6), "status": p.status,
-               "corners": p.n_corners}
+               "corners": p.n_corners, "sharpness": round(float(sharp.get(p.index, float("nan"))), 2)}
         if p.c2w is not None:
             row["reprojection_px"] = round(float(p.reproj_px), 4)
             row["ambiguity"] = round(float(p.ambiguity), 4)
@@ -102,7 +104,8 @@ def pose_report(run: PoseRun, board: BoardSpec) -> dict:
         frames.append(row)
     errs = np.array([p.reproj_px for p in run.posed if p.status == "posed"])
     report = {"intrinsics": run.intrinsics.to_json(), "intrinsics_source": run.intrinsics_source,
-              "frames_sampled": len(run.frames), "frames_posed": len(run.posed), "by_status": counts,
+              "frames_in_footage": run.frames_in_footage, "frames_sampled": len(run.frames),
+              "frames_posed": len(run.posed), "by_status": counts,
               "reprojection_px": {"median": round(float(np.median(errs)), 4),
                                   "p95": round(float(np.percentile(errs, 95)), 4),
                                   "max": round(float(errs.max()), 4)} if len(errs) else None,

@@ -620,6 +620,7 @@ class PoseRun:
     detections: tuple[Detection, ...]
     calibration: Calibration | None = None
     refined_rms: float | None = None
+    frames_in_footage: int = 0     # before sampling to --fps
 
     @property
     def posed(self) -> list[FramePose]:
@@ -666,4 +667,4 @@ def estimate_poses(source: FootageSource, board: BoardSpec, intr: Intrinsics | N
             why[p.status] = why.get(p.status, 0) + 1
         raise DbbError(f"only {n_posed} of {len(frames)} frames could be posed (need {min_posed}): "
                        + ", ".join(f"{k}: {v}" for k, v in sorted(why.items())))
-    return PoseRun(intr, intr_source, frames, tuple(dets), calib, refined_rms)
+    return PoseRun(intr, intr_source, frames, tuple(dets), calib, refined_rms, info.n_frames)

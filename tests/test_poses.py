@@ -184,7 +184,8 @@ def test_preprocess_stop_after_poses(capture, tmp_path):
     np.testing.assert_allclose(im.cam_from_world().matrix(), w2c[:3], atol=1e-6)
     report = json.loads((ds / "poses" / "report.json").read_text())
     assert report["frames_posed"] == len(tf["frames"]) and report["frames_sampled"] == 10
-    assert all("corners" in f for f in report["frames"])
+    assert all("corners" in f and f["sharpness"] > 0 for f in report["frames"])
+    assert report["frames_in_footage"] == 10
     assert (ds / "poses" / "camera_path.png").stat().st_size > 10_000
     assert json.loads((ds / "preprocess.json").read_text())["stages_run"] == ["poses"]
 
