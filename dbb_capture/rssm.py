@@ -26,7 +26,7 @@ A run folder (``dbb-train rssm DATASET -o RUN``) describes itself in ``run.json`
 - ``stepper.ts``: TorchScript :class:`Stepper` (``start(rgba, view)``, ``step(h, z, view)``);
 - ``checkpoint.pt``: model, optimiser, step and history, for ``--resume``;
 - ``report/``: ``eval.json`` (per-step PSNR/SSIM vs baselines, motion-energy ratio),
-  ``per_step.png``, ``motion.png``, ``curve.png``, ``strip.png`` (truth / prediction / near),
+  ``plots.png`` (per-step PSNR/SSIM, motion energy, losses), ``strip.png`` (truth / prediction / near),
   ``rollout.png`` (150 steps at a still viewpoint).
 
 Checkpoints during training go to ``.<RUN>.work/`` beside RUN (like the PlenOctree stage).
@@ -676,7 +676,7 @@ def _with_temperature(stepper, temperature: float):
 
 
 def write_figures(report: EvalReport, figs: dict, history: list[dict], folder: Path) -> None:
-    """``per_step.png``, ``motion.png``, ``curve.png``, ``strip.png``, ``rollout.png`` into ``folder``."""
+    """``plots.png`` (per-step PSNR/SSIM, motion energy, losses), ``strip.png``, ``rollout.png``."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -684,18 +684,14 @@ def write_figures(report: EvalReport, figs: dict, history: list[dict], folder: P
 
     folder.mkdir(parents=True, exist_ok=True)
     steps = np.arange(1, report.steps + 1)
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    fig, axes = plt.subplots(2, 2, figsize=(11, 7))
     for k in report.psnr:
-        axes[0].plot(steps, report.psnr[k], marker="o", label=k)
-        axes[1].plot(steps, report.ssim[k], marker="o", label=k)
-    axes[0].set(xlabel="open-loop step", ylabel="PSNR (dB)", title=f"PSNR, {report.split} split")
-    axes[1].set(xlabel="open-loop step", ylabel="SSIM", title=f"SSIM, {report.windows} windows")
-    axes[0].legend()
-    fig.tight_layout()
-    fig.savefig(folder / "per_step.png", dpi=100)
-    plt.close(fig)
-
-    fig, ax = plt.subplots(figsize=(7, 3.2))
+        axes[0, 0].plot(steps, report.psnr[k], marker="o", label=k)
+        axes[0, 1].plot(steps, report.ssim[k], marker="o", label=k)
+    axes[0, 0].set(xlabel="open-loop step", ylabel="PSNR (dB)", title=f"PSNR, {report.split} split")
+    axes[0, 1].set(xlabel="open-loop step", ylabel="SSIM", title=f"SSIM, {report.windows} windows")
+    axes[0, 0].legend()
+    ax = axes[1, 0]
     ax.plot(np.arange(1, len(figs["pred_curve"]) + 1), figs["pred_curve"], label="prediction")
     if figs["truth_curve"] is not None:
         ax.plot(np.arange(1, len(figs["truth_curve"]) + 1), figs["truth_curve"], label="truth")
@@ -704,20 +700,17 @@ def write_figures(report: EvalReport, figs: dict, history: list[dict], folder: P
     ax.set(xlabel="step", ylabel="mean |frame change|",
            title=f"motion energy at a still viewpoint, ratio {report.motion['ratio']}")
     ax.legend()
-    fig.tight_layout()
-    fig.savefig(folder / "motion.png", dpi=100)
-    plt.close(fig)
-
+    ax = axes[1, 1]
     if history:
-        fig, ax = plt.subplots(figsize=(7, 3.2))
         s = [h["step"] for h in history]
         for k in ("rec", "open_loop", "kl_dyn", "kl_rep", "overshoot"):
             ax.plot(s, [max(h[k], 1e-3) for h in history], label=k)
-        ax.set(xlabel="step", yscale="log", title="training losses")
+        ax.set(yscale="log")
         ax.legend()
-        fig.tight_layout()
-        fig.savefig(folder / "curve.png", dpi=100)
-        plt.close(fig)
+    ax.set(xlabel="step", title="training losses")
+    fig.tight_layout()
+    fig.savefig(folder / "plots.png", dpi=90)
+    plt.close(fig)
 
     # Strip: one held-out window, rows truth / model / near, on a grey checker (alpha visible).
     truth, m = figs["truth"], figs["methods"]

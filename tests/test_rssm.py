@@ -123,12 +123,20 @@ def test_tiny_overfit_loss_drops(data):
     assert last["open_loop"] < 0.5 * first["open_loop"]
 
 
-def test_run_folder_resume_and_eval(crops, tmp_path):
+def test_run_folder_cli_resume_and_eval(crops, tmp_path):
+    from click.testing import CliRunner
+
+    from dbb_capture.cli import train as cli
+
     out = tmp_path / "run"
-    meta = rssm.train_run(crops.root, out, SMALL, rssm.TrainConfig(steps=3, batch=2), quiet=True)
-    for f in ("run.json", "model.pt", "stepper.ts", "checkpoint.pt", "report/eval.json", "report/per_step.png",
-              "report/motion.png", "report/strip.png", "report/rollout.png", "report/curve.png"):
+    r = CliRunner().invoke(cli.main, ["rssm", str(crops.root), "-o", str(out), "--size", "32", "--steps", "3",
+                                      "--batch", "2", "--threads", "1"])
+    assert r.exit_code == 0, r.output
+    assert "open-loop PSNR" in r.output
+    for f in ("run.json", "model.pt", "stepper.ts", "checkpoint.pt", "report/eval.json", "report/plots.png",
+              "report/strip.png", "report/rollout.png"):
         assert (out / f).is_file(), f
+    meta = json.loads((out / "run.json").read_text())
     assert meta["training"]["steps"] == 3 and meta["model"]["config"]["size"] == 32
     ev = meta["eval"]
     assert ev["split"] == "train" and len(ev["psnr_db"]["model"]) == 10
@@ -136,14 +144,18 @@ def test_run_folder_resume_and_eval(crops, tmp_path):
     with pytest.raises(DbbError, match="already exists"):
         rssm.train_run(crops.root, out, SMALL, rssm.TrainConfig(steps=3, batch=2), quiet=True)
     meta2 = rssm.train_run(crops.root, out, SMALL, rssm.TrainConfig(steps=5, batch=2), resume=True, quiet=True)
-    assert meta2["training"]["steps"] == 5
-    assert meta2["training"]["final"]["step"] == 5
+    assert meta2["training"]["steps"] == 5 and meta2["training"]["final"]["step"] == 5
+    assert meta2["model"]["config"] == meta["model"]["config"]       # resumed, not restarted with SMALL
     ts = torch.jit.load(str(out / "stepper.ts"))
     h, z = ts.start(torch.rand(1, 4, 32, 32), torch.zeros(1, 3))
     assert ts.step(h, z, torch.zeros(1, 3))[2].shape == (1, 4, 32, 32)
-    rep = rssm.eval_run(out)
-    assert json.loads((out / "run.json").read_text())["eval"]["windows"] == rep.windows
-    assert not (out / ".report.partial").exists()
+    r = CliRunner().invoke(cli.main, ["rssm-eval", str(out)])
+    assert r.exit_code == 0, r.output
+    assert not (out / ".report.partial").exists() and (out / "report" / "eval.json").is_file()
+    r = CliRunner().invoke(cli.main, ["rssm", str(tmp_path / "missing"), "-o", str(tmp_path / "x")])
+    lines = [ln for ln in r.output.splitlines() if ln.strip()]
+    assert r.exit_code == 2 and len(lines) == 1 and lines[0].startswith("error:"), r.output
+    assert not (tmp_path / "x").exists()
 
 
 def test_eval_on_a_static_sequence_copy_first_is_perfect(data):
