@@ -134,6 +134,13 @@ def _image_size(path: Path) -> tuple[int, int]:
     return img.shape[1], img.shape[0]
 
 
+def _has_alpha(path: Path) -> bool:
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    return img is not None and img.ndim == 3 and img.shape[2] == 4
+
+
 def load_dataset(path: Path) -> PosedDataset:
     """Read a dataset folder or json file into a :class:`PosedDataset`.
 
@@ -175,7 +182,8 @@ def load_dataset(path: Path) -> PosedDataset:
             raise InputError(f"{where}: split must be train or test, not {split!r}")
         frames.append(Frame(Path(f["file_path"]).stem, img, opencv_from_opengl(m), intr, split, mask,
                             float(f["time"]) if f.get("time") is not None else None))
-    rgba = kind in ("crops", "blender") or any(fr.mask_path is not None for fr in frames)
+    rgba = (kind in ("crops", "blender") or any(fr.mask_path is not None for fr in frames)
+            or _has_alpha(frames[0].image_path))
     volume = _read_volume(meta, root)
     return PosedDataset(src, kind, frames, rgba, volume,
                         {k: v for k, v in meta.items() if k not in ("frames",)})
@@ -292,3 +300,27 @@ def holdout_named(frames: list[Frame], names: set[str]) -> list[Frame]:
     """Mark frames whose name (file stem) is in ``names`` as ``test``; the rest ``train``."""
     return [replace(f, split="test" if f.name in names else "train") for f in frames]
 
+
+
+def write_transforms(path: Path, frames: list[Frame], volume: ObjectVolume | None = None) -> None:
+    """Write ``frames`` as a nerfstudio ``transforms.json`` (per-frame intrinsics, OpenGL
+    camera-to-world, ``split``), image paths relative to the file where possible."""
+    from .cameras import opengl_from_opencv
+    from .outputs import write_json
+
+    path = Path(path)
+    out = []
+    for f in frames:
+        try:
+            rel = str(Path(f.image_path).resolve().relative_to(path.parent.resolve()))
+        except ValueError:
+            rel = str(Path(f.image_path).resolve())
+        d = {"file_path": rel, "transform_matrix": opengl_from_opencv(f.c2w).tolist(), "split": f.split,
+             **{k: v for k, v in f.intr.nerfstudio_fields().items()}}
+        if f.time is not None:
+            d["time"] = f.time
+        out.append(d)
+    meta: dict = {"camera_model": "OPENCV", "frames": out}
+    if volume is not None:
+        meta["object"] = {"center": list(volume.center), "radius": volume.radius}
+    write_json(path, meta)

@@ -1,0 +1,135 @@
+"""Posed datasets: transforms.json / Blender / crops.json read into OpenCV-convention frames."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import cv2
+import numpy as np
+import pytest
+from conftest import shared_data
+
+from dbb_capture.cameras import Intrinsics, look_at, opengl_from_opencv, project_points
+from dbb_capture.datasets import (Frame, ObjectVolume, estimate_volume, frame_rays, holdout_every,
+                                  load_dataset, load_rgba, scaled_intrinsics, write_transforms)
+from dbb_capture.errors import DbbError
+
+INTR = Intrinsics(40, 30, 50.0, 52.0, 19.3, 14.6, (0.05, -0.02, 0.001, -0.002, 0.0))
+
+
+def _img(path, rgba=True, value=200):
+    img = np.full((30, 40, 4 if rgba else 3), value, np.uint8)
+    if rgba:
+        img[..., 3] = 255
+        img[:10, :, 3] = 0
+    cv2.imwrite(str(path), img)
+
+
+def _poses(n=4):
+    out = []
+    for i in range(n):
+        a = 2 * math.pi * i / n
+        out.append(look_at(np.array([2 * math.cos(a), 2 * math.sin(a), -1.0]), np.zeros(3), np.array([0, 0, -1.0])))
+    return out
+
+
+def test_transforms_json_conventions_paths_and_per_frame_intrinsics(tmp_path):
+    poses = _poses()
+    (tmp_path / "img").mkdir()
+    frames = []
+    for i, c2w in enumerate(poses):
+        _img(tmp_path / "img" / f"{i}.jpg", rgba=False)
+        frames.append({"file_path": f"img/{i}.jpg", "transform_matrix": opengl_from_opencv(c2w).tolist()})
+    frames[2]["file_path"] = str((tmp_path / "img" / "2.jpg").resolve())       # absolute path
+    frames[3].update({"fl_x": 61.0, "fl_y": 62.0, "cx": 20.0, "cy": 15.0})       # per-frame intrinsics
+    meta = {**INTR.nerfstudio_fields(), "frames": frames}
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    ds = load_dataset(tmp_path)
+    assert ds.kind == "transforms" and not ds.rgba and len(ds.frames) == 4
+    for f, c2w in zip(ds.frames, poses):
+        np.testing.assert_allclose(f.c2w, c2w, atol=1e-12)        # OpenGL in the file, OpenCV inside
+    assert ds.frames[0].intr == INTR                              # distortion honoured
+    assert ds.frames[2].image_path.is_absolute() and ds.frames[2].image_path.exists()
+    i3 = ds.frames[3].intr
+    assert (i3.fx, i3.fy, i3.cx, i3.cy, i3.dist) == (61.0, 62.0, 20.0, 15.0, INTR.dist)
+
+
+def test_blender_camera_angle_and_extensionless_paths(tmp_path):
+    (tmp_path / "train").mkdir()
+    frames = []
+    for i, c2w in enumerate(_poses(3)):
+        _img(tmp_path / "train" / f"r_{i}.png")
+        frames.append({"file_path": f"./train/r_{i}", "transform_matrix": opengl_from_opencv(c2w).tolist()})
+    (tmp_path / "transforms_train.json").write_text(json.dumps({"camera_angle_x": 0.7, "frames": frames}))
+    ds = load_dataset(tmp_path)
+    f = ds.frames[0]
+    assert ds.kind == "blender" and ds.rgba
+    assert f.intr.fx == pytest.approx(20 / math.tan(0.35)) and f.intr.fy == f.intr.fx
+    assert (f.intr.cx, f.intr.cy) == (19.5, 14.5)                 # image centre, OpenCV pixel centres
+    rgba = load_rgba(f)
+    assert rgba.shape == (30, 40, 4) and rgba[0, 0, 3] == 0 and rgba[-1, 0, 3] == 1
+
+
+def test_crops_json_split_volume_and_write_round_trip(tmp_path):
+    frames = []
+    for i, c2w in enumerate(_poses(4)):
+        _img(tmp_path / f"{i:05d}.png")
+        frames.append(Frame(f"{i:05d}", tmp_path / f"{i:05d}.png", c2w, INTR, "test" if i == 1 else "train",
+                            time=0.1 * i))
+    write_transforms(tmp_path / "crops.json", frames, ObjectVolume((0.1, 0.2, 0.3), 0.4))
+    ds = load_dataset(tmp_path)
+    assert ds.kind == "crops" and ds.rgba
+    assert [f.split for f in ds.frames] == ["train", "test", "train", "train"]
+    assert ds.volume == ObjectVolume((0.1, 0.2, 0.3), 0.4)
+    assert ds.frames[2].time == pytest.approx(0.2)
+    np.testing.assert_allclose(ds.frames[3].c2w, frames[3].c2w, atol=1e-12)
+    assert [f.split for f in holdout_every(ds.frames, 2)] == ["test", "train", "test", "train"]
+
+
+def test_rays_pass_through_projected_points_with_distortion():
+    c2w = _poses(1)[0]
+    pts = np.random.default_rng(0).uniform(-0.2, 0.2, (20, 3))
+    uv = project_points(pts, c2w, INTR)
+    o, d = frame_rays(INTR, c2w)
+    # Bilinear look-up of the ray direction at the projected pixel must point at the point.
+    for p, (u, v) in zip(pts, uv):
+        if not (0 <= u < INTR.width - 1 and 0 <= v < INTR.height - 1):
+            continue
+        from dbb_capture.cameras import camera_rays
+        dc = camera_rays(INTR, np.array([[u, v]]))[0]
+        dw = c2w[:3, :3] @ dc
+        want = (p - c2w[:3, 3]) / np.linalg.norm(p - c2w[:3, 3])
+        assert np.degrees(np.arccos(np.clip(dw @ want, -1, 1))) < 1e-4
+    assert o.shape == d.shape == (30, 40, 3)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=-1), 1, atol=1e-5)
+
+
+def test_downscaled_intrinsics_keep_pixel_centres():
+    s = scaled_intrinsics(Intrinsics(800, 800, 1000, 1000, 399.5, 399.5), 4)
+    assert (s.width, s.height, s.fx, s.cx) == (200, 200, 250, 99.5)
+
+
+def test_estimated_volume_holds_the_look_at_point():
+    frames = [Frame(str(i), None, c2w, INTR) for i, c2w in enumerate(_poses(6))]
+    v = estimate_volume(frames)
+    assert v.estimated and np.linalg.norm(v.center) < 1e-6 and 0.3 < v.radius < 2.3
+
+
+def test_bad_datasets_fail_clearly(tmp_path):
+    with pytest.raises(DbbError, match="none of"):
+        load_dataset(tmp_path)
+    (tmp_path / "transforms.json").write_text(json.dumps(
+        {**INTR.nerfstudio_fields(), "frames": [{"file_path": "nope.png", "transform_matrix": np.eye(4).tolist()}]}))
+    with pytest.raises(DbbError, match="image not found"):
+        load_dataset(tmp_path)
+
+
+def test_real_datasets_load():
+    lego = load_dataset(shared_data("nerf_lego"))
+    assert lego.kind == "blender" and len(lego.frames) == 100 and lego.frames[0].intr.fx == pytest.approx(1111.111, abs=1e-3)
+    fox = load_dataset(shared_data("fox"))
+    assert fox.kind == "transforms" and not fox.rgba and fox.frames[0].intr.dist[0] == pytest.approx(0.0578421)
+    # instant-ngp cameras look at the figurine: the estimated centre lies in front of all of them.
+    v = estimate_volume(fox.frames)
+    assert all((np.asarray(v.center) - f.c2w[:3, 3]) @ f.c2w[:3, 2] > 0 for f in fox.frames)

@@ -1,0 +1,149 @@
+"""PlenOctree bake (svox N3Tree npz), load, and the RGBA renderer over the tree."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+
+from dbb_capture.cameras import Intrinsics, look_at
+from dbb_capture.datasets import write_transforms
+from dbb_capture.fields import (Budget, FieldConfig, TrainState, build_ray_bank, frame_tensors, new_field,
+                                psnr, render_image, train)
+from dbb_capture.octree import PlenOctree, TreeRenderer, bake, build_tree, leaf_cells
+
+
+def _descend(child, cell, depth):
+    """Reference point location: the data row of fine-lattice ``cell`` by walking the tree."""
+    node = 0
+    for k in range(depth + 1):
+        s = [(c >> (depth - k)) & 1 for c in cell]
+        rel = child[node, s[0], s[1], s[2]]
+        if rel == 0:
+            return node, tuple(s)
+        node += rel
+    raise AssertionError("deeper than depth_limit")
+
+
+def test_build_tree_structure_matches_svox_layout():
+    rng = np.random.default_rng(0)
+    depth = 3
+    cells = np.unique(rng.integers(0, 16, (40, 3)), axis=0)
+    vals = rng.normal(size=(len(cells), 5)).astype(np.float32)
+    data, child, pd = build_tree(cells, vals, depth)
+    n = child.shape[0]
+    assert data.shape == (n, 2, 2, 2, 5) and child.dtype == np.int32 and pd.shape == (n, 2)
+    assert (child >= 0).all()                              # relative, forward
+    for c, v in zip(cells, vals):
+        node, s = _descend(child, c, depth)
+        np.testing.assert_array_equal(data[node][s], v)
+        assert pd[node, 1] == depth
+    # Every non-root node's packed parent cell points back at it.
+    for i in range(1, n):
+        p, slot = divmod(int(pd[i, 0]), 8)
+        assert p + child[p, slot >> 2, (slot >> 1) & 1, slot & 1] == i
+    got, rows = leaf_cells(PlenOctree(data.astype(np.float16), child, pd, np.ones(3, np.float32),
+                                      np.zeros(3, np.float32), depth, "SH1"))
+    pos = vals[:, -1] > 0
+    assert {tuple(c) for c in got} == {tuple(c) for c in cells[pos]}
+
+
+def test_renderer_alpha_of_one_opaque_cube_is_exact():
+    """A single leaf cell of density sigma: a ray straight through sees 1 - exp(-sigma * side)."""
+    depth = 2                                               # 8^3 lattice over [-1, 1]^3: side 0.25
+    sigma = 3.0
+    data, child, pd = build_tree(np.array([[4, 4, 4]]), np.array([[2.0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, sigma]],
+                                                                   np.float32), depth)
+    inv = np.full(3, 0.5, np.float32)                       # radius 1, centre 0
+    tree = PlenOctree(data.astype(np.float16), child, pd, inv, (0.5 - 0 * inv).astype(np.float32), depth, "SH4")
+    r = TreeRenderer(tree)
+    o = torch.tensor([[0.1, 0.1, -3.0], [0.6, 0.6, -3.0]])
+    d = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    rgb, a = r.render_rays(o, d)
+    assert a[0].item() == pytest.approx(1 - math.exp(-sigma * 0.25), abs=0.02)
+    assert a[1].item() == 0.0
+    # Colour: sigmoid(C0 * 2) for the red channel, sigmoid(0) for green and blue.
+    want = torch.sigmoid(torch.tensor([0.28209479 * 2, 0.0, 0.0])) * a[0]
+    assert torch.allclose(rgb[0], want, atol=1e-3)
+
+
+@pytest.fixture(scope="module")
+def baked(tmp_path_factory):
+    from test_fields import synthetic_object_frames
+
+    folder = tmp_path_factory.mktemp("octree")
+    frames, vol = synthetic_object_frames(folder, n=12, size=24, seed=2)
+    cfg = FieldConfig(res_start=16, res_max=32, batch_rays=512, upsample_at=(0.3,), tv_points=2048)
+    torch.manual_seed(0)
+    state = train(TrainState(new_field(cfg, vol, torch.device("cpu"))),
+                  build_ray_bank(frames, 1, vol), Budget(steps=50))
+    tree = bake(state.field)
+    return frames, vol, state, tree, folder
+
+
+def test_bake_save_load_round_trip_in_svox_format(baked):
+    frames, vol, state, tree, folder = baked
+    path = folder / "tree.npz"
+    nbytes = tree.save(path)
+    assert nbytes == path.stat().st_size
+    z = np.load(path)
+    for key in ("data", "child", "parent_depth", "n_internal", "n_free", "data_dim", "depth_limit",
+                "geom_resize_fact", "invradius3", "offset", "data_format"):
+        assert key in z.files, key
+    assert z["data"].dtype == np.float16 and z["child"].dtype == np.int32
+    assert z["data"].shape[1:] == (2, 2, 2, 28) and str(z["data_format"]) == "SH9"
+    assert int(z["depth_limit"]) == 4                      # 32^3 lattice -> leaves at depth 4
+    np.testing.assert_allclose(z["invradius3"], 0.5 / vol.radius, rtol=1e-6)
+    np.testing.assert_allclose(z["offset"] + np.asarray(vol.center) * z["invradius3"], 0.5, atol=1e-5)
+    assert str(z["dbb_colour_activation"]) == "sigmoid"
+    back = PlenOctree.load(path)
+    np.testing.assert_array_equal(back.data, tree.data)
+    np.testing.assert_array_equal(back.child, tree.child)
+    # Trimmed: no leaf with density outside the object sphere.
+    cells, _ = leaf_cells(back)
+    L = 1 << (back.depth_limit + 1)
+    centres = (cells + 0.5) / L * 2 - 1
+    assert len(cells) > 0 and (np.linalg.norm(centres, axis=1) <= 1 + 1e-6).all()
+
+
+def test_tree_renders_like_the_field(baked):
+    frames, vol, state, tree, _ = baked
+    r = TreeRenderer(tree)
+    f = frames[5]
+    o, d, _ = frame_tensors(f, 1)
+    field_img = render_image(state.field, torch.from_numpy(o), torch.from_numpy(d), (1.0, 1.0, 1.0))
+    tree_img = r.render(f.c2w, f.intr, (1.0, 1.0, 1.0))
+    assert psnr(float(((field_img - tree_img) ** 2).mean())) > 28
+    rgba = r.render(f.c2w, f.intr)
+    assert rgba.shape == (24, 24, 4) and 0.05 < rgba[..., 3].mean() < 0.9
+
+
+def test_cli_writes_a_self_describing_run_and_rejects_bad_input(baked, tmp_path):
+    import json
+
+    from dbb_capture.cli.train import main
+    from dbb_capture.plenoctree import load_run
+
+    frames, vol, *_ = baked
+    write_transforms(tmp_path / "transforms.json", frames, vol)
+    run = tmp_path / "run"
+    args = ["plenoctree", str(tmp_path), "-o", str(run), "--steps", "8", "--res-max", "16", "--batch-rays", "256"]
+    res = CliRunner().invoke(main, args)
+    assert res.exit_code == 0, res.output
+    meta = json.loads((run / "run.json").read_text())
+    assert meta["mode"] == "object" and meta["tree"]["colour_activation"] == "sigmoid"
+    assert meta["object"]["radius"] == pytest.approx(vol.radius)
+    loaded = load_run(run)
+    assert loaded.tree().data_format == "SH9"
+    for name in ("tree.npz", "density_grid.npz", "checkpoint.pt", "report/curve.png", "report/metrics.json"):
+        assert (run / name).is_file(), name
+    g = np.load(run / "density_grid.npz")
+    assert g["sigma"].shape == (16, 16, 16)
+    assert CliRunner().invoke(main, args).exit_code == 2                     # exists, no --overwrite
+    res = CliRunner().invoke(main, args + ["--resume", "--steps", "10"])      # continue the same run
+    assert res.exit_code == 0, res.output
+    assert json.loads((run / "run.json").read_text())["training"]["steps"] == 10
+    assert CliRunner().invoke(main, ["plenoctree", str(tmp_path / "nope"), "-o", str(tmp_path / "r2")]).exit_code == 2
