@@ -1,0 +1,148 @@
+"""Benchmarks for issue 4 (PlenOctree): quality on NeRF-synthetic lego, fox and a synthetic
+object, render speed and size of the baked tree. Figures go to docs/benchmarks.md.
+
+Each part evaluates a run folder written by ``dbb-train plenoctree`` (train it first, under
+``flock /tmp/dbb-bench.lock`` so timings do not overlap), or trains one itself with ``--train``:
+
+    python bench/bench_plenoctree.py lego RUN            # held-out PSNR (white) + SSIM, speed, size
+    python bench/bench_plenoctree.py fox RUN             # held-out PSNR on the 17 listed frames
+    python bench/bench_plenoctree.py synth OUT --minutes 10   # synthetic object, novel views
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from dbb_capture.cameras import Intrinsics, look_at
+from dbb_capture.datasets import Frame, ObjectVolume, load_dataset, scaled_intrinsics, write_transforms
+from dbb_capture.fields import TrainState, frame_tensors, psnr, render_image
+from dbb_capture.octree import TreeRenderer
+from dbb_capture.plenoctree import RunConfig, evaluate_views, load_run, mean_of, split_frames, train_run
+
+FOX_HELDOUT = ("0005", "0016", "0017", "0024", "0032", "0051", "0068", "0071", "0075", "0083", "0087",
+               "0088", "0093", "0099", "0104", "0106", "0113")
+
+
+def render_speed(renderer: TreeRenderer, c2w: np.ndarray, base: Intrinsics, size: int, repeats: int) -> float:
+    """Frames per second rendering straight RGBA at size x size (same field of view as ``base``)."""
+    intr = scaled_intrinsics(base, base.width / size)
+    renderer.render(c2w, intr)                               # warm up
+    t = time.perf_counter()
+    for _ in range(repeats):
+        renderer.render(c2w, intr)
+    return repeats / (time.perf_counter() - t)
+
+
+def bench_lego(run_dir: Path, repeats: int) -> dict:
+    run = load_run(run_dir)
+    ds = load_dataset(Path(run.meta["dataset"]))
+    _, test = split_frames(ds, RunConfig(holdout_every=8))
+    tree = run.tree()
+    r = TreeRenderer(tree)
+    rows = evaluate_views(r, test, run.meta["training"]["downscale"])
+    f = test[0]
+    return {
+        "run": str(run_dir), "train_minutes": run.meta["training"]["seconds"] / 60,
+        "steps": run.meta["training"]["steps"], "final_lattice": run.meta["field"]["final_res"],
+        "heldout_views": len(test), "psnr_white": mean_of(rows, "psnr_white"),
+        "ssim_white": mean_of(rows, "ssim_white"),
+        "tree_mb": run.tree_path.stat().st_size / 1e6, "tree_depth": tree.depth_limit,
+        "fps_256": render_speed(r, f.c2w, f.intr, 256, repeats),
+        "fps_800": render_speed(r, f.c2w, f.intr, 800, max(1, repeats // 4)),
+        "threads": torch.get_num_threads(),
+    }
+
+
+def bench_fox(run_dir: Path) -> dict:
+    """Held-out PSNR of the scene field (fox is a scene: the tree holds only the inner sphere)."""
+    run = load_run(run_dir)
+    ds = load_dataset(Path(run.meta["dataset"]))
+    _, test = split_frames(ds, RunConfig(holdout_names=FOX_HELDOUT))
+    st = TrainState.load(run_dir / "checkpoint.pt", torch.device("cpu"))
+    ps = []
+    for f in test:
+        o, d, rgba = frame_tensors(f, run.meta["training"]["downscale"])
+        img = render_image(st.field, torch.from_numpy(o), torch.from_numpy(d), (0.0, 0.0, 0.0))
+        ps.append(psnr(float(((img - rgba[..., :3]) ** 2).mean())))
+    return {"run": str(run_dir), "train_minutes": run.meta["training"]["seconds"] / 60,
+            "steps": run.meta["training"]["steps"], "heldout_views": len(test),
+            "psnr_heldout_field": float(np.mean(ps)), "per_view": dict(zip([f.name for f in test], ps)),
+            "tree_heldout_white_report": run.meta["metrics"].get("mean_psnr_tree_white")}
+
+
+def synth_dataset(out: Path, n_train: int = 60, n_test: int = 12, size: int = 128, seed: int = 0) -> Path:
+    """Posed 128 px RGBA views of the synthetic static object rendered from its ground truth,
+    cameras on the synthetic camera path's azimuth/elevation/distance ranges, each looking at
+    the object's centre like a crop camera. Test views are novel poses (interleaved azimuths)."""
+    import cv2
+
+    from dbb_capture.board import BoardSpec
+    from dbb_capture.synth import SynthConfig, make_object, render_object_rgba
+
+    cfg = SynthConfig(seed=seed)
+    model = make_object("static", BoardSpec(7, 5, 0.05, 0.0375, "DICT_5X5_100"), np.random.default_rng(seed))
+    c, r = model.bounding_sphere(np.array([0.0]))
+    rng = np.random.default_rng(seed + 7)
+    out.mkdir(parents=True, exist_ok=True)
+    frames = []
+    for i in range(n_train + n_test):
+        test = i >= n_train
+        az = math.radians(rng.uniform(*cfg.azimuth_range_deg) - 90)
+        el = math.radians(rng.uniform(*cfg.elevation_range_deg))
+        dist = rng.uniform(*cfg.distance_range_m)
+        eye = c + dist * np.array([math.cos(az) * math.cos(el), math.sin(az) * math.cos(el), -math.sin(el)])
+        c2w = look_at(eye, c, np.array([0, 0, -1.0]))
+        f = 0.5 * size * dist / (1.15 * r) * math.sqrt(1 - (1.15 * r / dist) ** 2)   # sphere fills the crop
+        intr = Intrinsics(size, size, f, f, (size - 1) / 2, (size - 1) / 2)
+        p = out / f"{i:04d}.png"
+        cv2.imwrite(str(p), cv2.cvtColor(render_object_rgba(model, intr, c2w, 0.0), cv2.COLOR_RGBA2BGRA))
+        frames.append(Frame(f"{i:04d}", p, c2w, intr, "test" if test else "train"))
+    write_transforms(out / "crops.json", frames, ObjectVolume(tuple(float(v) for v in c), float(r) * 1.1))
+    return out
+
+
+def bench_synth(out: Path, minutes: float) -> dict:
+    data = synth_dataset(out / "dataset")
+    t = time.perf_counter()
+    run = train_run(data, out / "run", RunConfig(minutes=minutes), overwrite=True)
+    wall = time.perf_counter() - t
+    ds = load_dataset(data)
+    test = ds.split("test")
+    rows = evaluate_views(TreeRenderer(run.tree()), test, 1.0, ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0)))
+    return {"train_minutes": run.meta["training"]["seconds"] / 60, "wall_minutes_incl_bake": wall / 60,
+            "steps": run.meta["training"]["steps"], "heldout_views": len(test),
+            "psnr_black": mean_of(rows, "psnr_black"), "psnr_white": mean_of(rows, "psnr_white"),
+            "ssim_white": mean_of(rows, "ssim_white"), "tree_mb": run.tree_path.stat().st_size / 1e6}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("part", choices=["lego", "fox", "synth"])
+    ap.add_argument("path", type=Path, help="run folder (lego, fox) or output folder (synth)")
+    ap.add_argument("--minutes", type=float, default=10.0)
+    ap.add_argument("--repeats", type=int, default=8)
+    ap.add_argument("--json", type=Path, default=None, help="also write the figures here")
+    a = ap.parse_args(argv)
+    if a.part == "lego":
+        res = bench_lego(a.path, a.repeats)
+    elif a.part == "fox":
+        res = bench_fox(a.path)
+    else:
+        res = bench_synth(a.path, a.minutes)
+    text = json.dumps(res, indent=2)
+    print(text)
+    if a.json:
+        a.json.write_text(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
