@@ -37,8 +37,10 @@ def main() -> None:
               help="Without a split in the dataset, every n-th frame is held out for the report (0: none).")
 @click.option("--holdout", "holdout_names", default="", help="Comma-separated frame names (file stems) to hold out.")
 @click.option("--batch-rays", type=int, default=4096, show_default=True)
+@click.option("--threads", type=click.IntRange(1, 256), default=None,
+              help="CPU threads (default: torch's choice; on a machine shared with other jobs 1 is faster).")
 def plenoctree(dataset, out, minutes, steps, downscale, resume, overwrite, mode, sh_degree, res_max,
-               max_points, depth, holdout_every, holdout_names, batch_rays) -> None:
+               max_points, depth, holdout_every, holdout_names, batch_rays, threads) -> None:
     """Static object: train a voxel radiance field on DATASET and bake it into a PlenOctree.
 
     DATASET is a preprocess output (crops.json) or a nerfstudio / instant-ngp / Blender
@@ -48,6 +50,10 @@ def plenoctree(dataset, out, minutes, steps, downscale, resume, overwrite, mode,
     from dbb_capture.plenoctree import RunConfig, train_run
     from dbb_capture.progress import console
 
+    if threads:
+        import torch
+
+        torch.set_num_threads(threads)
     names = tuple(n.strip() for n in holdout_names.split(",") if n.strip())
     cfg = RunConfig(minutes, steps, downscale, mode, holdout_every, names, depth)
     fcfg = FieldConfig(sh_degree=sh_degree, res_max=res_max, max_points=max_points, batch_rays=batch_rays,
