@@ -17,21 +17,31 @@ if ! { ldconfig -p 2>/dev/null || true; } | grep -q 'libusb-1.0.so.0'; then
   fi
 fi
 
+# pip, quietly: some machines' pip configuration warns about every missing local index.
+pipq() {
+  local rc
+  set +o pipefail
+  .venv/bin/python -m pip "$@" 2>&1 | { grep -v "^WARNING: Location '" || true; }
+  rc=${PIPESTATUS[0]}
+  set -o pipefail
+  return "$rc"
+}
+
 [ -x .venv/bin/python ] || { echo "setup: creating .venv" >&2; "$PY" -m venv .venv; }
 stamp=.venv/.dbb-setup-stamp
 want=$(sha256sum pyproject.toml | cut -c1-16)
 if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ] || ! .venv/bin/python -c "import dbb_capture" 2>/dev/null; then
   echo "setup: installing the toolkit and its dependencies into .venv (first time: a few minutes)" >&2
-  .venv/bin/python -m pip install -q --upgrade pip
+  pipq install -q --upgrade pip
   # Bring your own torch (e.g. a CUDA build) by installing it into .venv first. Otherwise
   # machines without an NVIDIA driver get the CPU build 2.13.0 rather than a multi-GB CUDA one.
   if ! .venv/bin/python -c "import torch" 2>/dev/null; then
     if command -v nvidia-smi >/dev/null 2>&1; then
-      .venv/bin/python -m pip install -q torch
+      pipq install -q torch
     else
-      .venv/bin/python -m pip install -q "torch==2.13.0" || .venv/bin/python -m pip install -q torch
+      pipq install -q "torch==2.13.0" || pipq install -q torch
     fi
   fi
-  .venv/bin/python -m pip install -q -e ".[test]"
+  pipq install -q -e ".[test]"
   echo "$want" > "$stamp"
 fi
