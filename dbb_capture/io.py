@@ -129,20 +129,24 @@ class VideoSource(FootageSource):
             pts = sorted(p.pts for p in container.demux(stream) if p.pts is not None and p.size)
             container.seek(0)
             first = next(container.decode(stream), None)
+            # Read everything from the stream before closing: PyAV objects of a closed
+            # container point at freed memory (a segmentation fault, not an exception).
+            tb = float(stream.time_base)
+            rate = float(stream.average_rate or stream.guessed_rate or 0)
+            if first is not None:
+                rotation, w, h = float(first.rotation or 0), first.width, first.height
         except av.error.FFmpegError as e:
             raise InputError(f"cannot read video {self.path}: {e}") from None
         finally:
             container.close()
         if first is None or not pts:
             raise InputError(f"video {self.path} holds no decodable frames")
-        tb = float(stream.time_base)
         times = (np.asarray(pts, np.float64) - pts[0]) * tb
         self._pts0 = pts[0]
-        self._rotation = float(first.rotation or 0)
-        w, h = first.width, first.height
+        self._rotation = rotation
         if int(round(self._rotation / 90.0)) % 2:
             w, h = h, w
-        fps = float(stream.average_rate or stream.guessed_rate or 0) or (
+        fps = rate or (
             (len(times) - 1) / times[-1] if len(times) > 1 and times[-1] > 0 else 30.0)
         return FootageInfo(self.kind, self.path, w, h, fps, times)
 
