@@ -12,7 +12,8 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
-console = Console(stderr=True, highlight=False)
+# soft_wrap: messages are never broken across lines (paths stay copyable, logs greppable).
+console = Console(stderr=True, highlight=False, soft_wrap=True)
 
 
 def progress(transient: bool = False) -> Progress:
