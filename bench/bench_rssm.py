@@ -44,7 +44,8 @@ def speed(size: int, steps: int = 300) -> dict:
             "threads": torch.get_num_threads(), "parameters": sum(p.numel() for p in model.parameters())}
 
 
-def quality(work: Path, minutes: float, seconds: float, size: int, batch: int, steps: int | None) -> dict:
+def quality(work: Path, minutes: float, seconds: float, size: int, batch: int, steps: int | None,
+            lr: float, run_name: str = "run") -> dict:
     work.mkdir(parents=True, exist_ok=True)
     ds = work / "dataset"
     t = time.perf_counter()
@@ -53,9 +54,9 @@ def quality(work: Path, minutes: float, seconds: float, size: int, batch: int, s
         torch.save({"first": sc.still_first, "view": sc.still_view, "truth": sc.still_truth}, work / "still.pt")
     still = torch.load(work / "still.pt", weights_only=False)
     render_s = time.perf_counter() - t
-    run = work / "run"
+    run = work / run_name
     t = time.perf_counter()
-    meta = rssm.train_run(ds, run, rssm.RssmConfig(size=size), rssm.TrainConfig(minutes, steps, batch=batch),
+    meta = rssm.train_run(ds, run, rssm.RssmConfig(size=size), rssm.TrainConfig(minutes, steps, batch=batch, lr=lr),
                           overwrite=True)
     train_s = time.perf_counter() - t
     # Re-evaluate with the motion truth rendered at the still viewpoint (the run's own eval has
@@ -88,12 +89,14 @@ def main() -> None:
     q.add_argument("--size", type=int, default=64)
     q.add_argument("--batch", type=int, default=8)
     q.add_argument("--threads", type=int, default=1)
+    q.add_argument("--lr", type=float, default=rssm.TrainConfig.lr)
+    q.add_argument("--run-name", default="run")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     if a.cmd == "speed":
         out = [speed(int(s)) for s in a.sizes.split(",")]
     else:
-        out = quality(a.work, a.minutes, a.seconds, a.size, a.batch, a.steps)
+        out = quality(a.work, a.minutes, a.seconds, a.size, a.batch, a.steps, a.lr, a.run_name)
     print(json.dumps(out, indent=2))
 
 
