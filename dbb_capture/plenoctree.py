@@ -9,7 +9,7 @@ A run folder (``dbb-train plenoctree DATASET -o RUN``) describes itself in ``run
   proxy meshes and previews;
 - ``checkpoint.pt``: the trained field, so ``--resume`` can train further;
 - ``report/``: ``curve.png`` (loss and PSNR over steps), ``heldout_*.png`` (render | truth on
-  white), ``metrics.json``.
+  white: the tree for objects, the field for scenes), ``metrics.json``.
 - ``run.json: object`` is the object sphere in the dataset's world frame (board frame for
   captures) and whether it was estimated from the cameras.
 
@@ -246,7 +246,9 @@ def write_report(state: TrainState, tree: PlenOctree, frames: list[Frame], cfg: 
         rows.append({"frame": f.name,
                      "psnr_tree_white": psnr(float(((img_tree - gt) ** 2).mean())),
                      "psnr_field_white": psnr(float(((img_field - gt) ** 2).mean()))})
-        side = np.concatenate([img_tree, gt], 1)
+        # A scene's tree holds only the inner sphere: show the whole field beside the truth.
+        shown = img_field if state.field.cfg.mode == "scene" else img_tree
+        side = np.concatenate([shown, gt], 1)
         cv2.imwrite(str(folder / f"heldout_{f.name}.png"),
                     cv2.cvtColor((np.clip(side, 0, 1) * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR))
     metrics = {"views": "held-out" if heldout else "training (no held-out frames)",
