@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from .board import BoardSpec
-from .cameras import Intrinsics, camera_rays, look_at, opengl_from_opencv, pixel_grid, rigid
+from .cameras import Intrinsics, camera_rays, look_at, opengl_from_opencv, pixel_grid
 from .errors import DbbError
 from .outputs import atomic_dir, write_json
 from .progress import progress

@@ -71,7 +71,6 @@ def test_crop_window_shrinks_with_distance():
 
 
 def test_cut_crop_centres_a_projected_point_through_distortion():
-    import cv2
 
     center, radius = np.array([0.45, 0.12, -0.09]), 0.11
     for az, el, dist, roll in POSES:

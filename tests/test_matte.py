@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from dbb_capture.crops import crop_camera, cut_crop
-from dbb_capture.matte import MatteConfig, colour_distance, matte, sphere_disc
+from dbb_capture.matte import colour_distance, matte, sphere_disc
 from dbb_capture.synth import UP, Renderer, SynthConfig, make_scene, render_object_rgba, sensor
 from dbb_capture.cameras import look_at
 
