@@ -33,7 +33,9 @@ from dbb_capture.board import BoardSpec
 from dbb_capture.cameras import opencv_from_opengl
 from dbb_capture.io import VideoSource, open_footage
 from dbb_capture.poses import DetectorConfig, estimate_poses
-from dbb_capture.synth import SynthConfig, load_ground_truth, write_capture
+
+# dbb_capture.synth (and torch with it) is imported inside the functions that render: spawned
+# pose workers re-import this main module, and torch would cost each of them seconds to load.
 
 # name, board, distortion, resolution
 CASES = [
@@ -79,6 +81,8 @@ def board_in_view(cams: dict, board: BoardSpec, intr) -> np.ndarray:
 
 
 def accuracy(work: Path, seconds: float, fps: float) -> None:
+    from dbb_capture.synth import SynthConfig, load_ground_truth, write_capture
+
     rows = []
     for k, (name, board, dist, (w, h)) in enumerate(CASES):
         cap = work / f"acc{k}"
@@ -137,6 +141,8 @@ def _cpu_seconds() -> float:
 
 def speed(work: Path, seconds: float, repeats: int) -> None:
     import cv2
+
+    from dbb_capture.synth import SynthConfig, load_ground_truth, write_capture
 
     cap = work / "speed1920"
     board = BoardSpec(7, 5, 0.05, 0.0375, "DICT_5X5_100")
