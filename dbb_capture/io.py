@@ -354,6 +354,45 @@ def capture_footage(capture: Path) -> FootageSource:
     raise InputError(f"{capture}: no footage found (expected video.mp4/video.mov, frames/, raw/ or a .r3d)")
 
 
+def prefetched(frames: Iterator[Frame], depth: int = 4) -> Iterator[Frame]:
+    """Decode ahead in a thread (PyAV and OpenCV release the GIL), so decoding the next frames
+    overlaps work on this one; exceptions of the decoder are raised here, in order."""
+    import queue
+    import threading
+
+    q: queue.Queue = queue.Queue(maxsize=depth)
+    done = object()
+    stop = threading.Event()
+
+    def run() -> None:
+        try:
+            for f in frames:
+                while not stop.is_set():
+                    try:
+                        q.put(f, timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                if stop.is_set():
+                    return
+            q.put(done)
+        except BaseException as e:  # handed to the consumer
+            q.put(e)
+
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    try:
+        while True:
+            item = q.get()
+            if item is done:
+                return
+            if isinstance(item, BaseException):
+                raise item
+            yield item
+    finally:
+        stop.set()
+
+
 # --------------------------------------------------------------------------- sampling & sharpness
 def sample_indices(times: np.ndarray, fps: float | None) -> np.ndarray:
     """Indices (M,) of frames kept when resampling frame ``times`` (N,) seconds to ``fps``.

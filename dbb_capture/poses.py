@@ -27,7 +27,7 @@ import numpy as np
 from .board import BoardSpec
 from .cameras import Intrinsics, invert_rigid, rigid
 from .errors import DbbError
-from .io import Frame, FootageSource, blurry_mask, sharpness, to_gray8
+from .io import Frame, FootageSource, blurry_mask, prefetched, sharpness, to_gray8
 
 
 # --------------------------------------------------------------------------- detection
@@ -218,7 +218,7 @@ def _detect_segment(seg: _Segment) -> list[Detection]:
     """Worker: decode and detect one contiguous segment (runs in a spawned process)."""
     seg.source.single_thread = True
     q = _progress_queue
-    return detect_frames(seg.source.read(seg.indices, gray=True), seg.board, seg.cfg,
+    return detect_frames(prefetched(seg.source.read(seg.indices, gray=True)), seg.board, seg.cfg,
                          (lambda: q.put(1)) if q is not None else None)
 
 
@@ -232,7 +232,7 @@ def detect_footage(source: FootageSource, indices: Sequence[int], board: BoardSp
     # A spawned worker costs about a second to start: only worth it on longer footage.
     workers = max(1, min(workers, len(indices) // 60 or 1))
     if workers == 1:
-        return detect_frames(source.read(indices, gray=True), board, cfg,
+        return detect_frames(prefetched(source.read(indices, gray=True)), board, cfg,
                              (lambda: tick(1)) if tick else None)
     chunks = [tuple(c.tolist()) for c in np.array_split(np.asarray(indices), workers)]
     ctx = mp.get_context("spawn")

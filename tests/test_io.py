@@ -14,7 +14,7 @@ from click.testing import CliRunner
 
 from dbb_capture.cli.capture import main
 from dbb_capture.errors import DbbError, InputError
-from dbb_capture.io import (ImageFolderSource, R3dSource, RawFolderSource, VideoSource, blurry_mask,
+from dbb_capture.io import (Frame, ImageFolderSource, R3dSource, RawFolderSource, VideoSource, blurry_mask,
                             open_footage, sample_indices, sharpness)
 
 
@@ -141,3 +141,18 @@ def test_cli_unreadable_footage_exits_2(tmp_path, make):
     assert res.exit_code == 2
     lines = [ln for ln in res.output.splitlines() if ln.strip()]
     assert len(lines) == 1 and ("cannot read video" in lines[0] or "no footage" in lines[0])
+
+
+def test_prefetched_keeps_order_and_raises_decoder_errors():
+    from dbb_capture.io import prefetched
+
+    def gen():
+        for i in range(10):
+            yield Frame(i, i / 10, np.zeros((2, 2), np.uint8), str(i))
+        raise InputError("broken at 10")
+
+    got = []
+    with pytest.raises(InputError, match="broken"):
+        for f in prefetched(gen(), depth=2):
+            got.append(f.index)
+    assert got == list(range(10))
