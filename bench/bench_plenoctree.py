@@ -7,6 +7,7 @@ Each part evaluates a run folder written by ``dbb-train plenoctree`` (train it f
     python bench/bench_plenoctree.py lego RUN            # held-out PSNR (white) + SSIM, speed, size
     python bench/bench_plenoctree.py fox RUN             # held-out PSNR on the 17 listed frames
     python bench/bench_plenoctree.py synth OUT --minutes 10   # synthetic object, novel views
+    python bench/bench_plenoctree.py speed RUN           # render speed and size of the tree only
 """
 
 from __future__ import annotations
@@ -59,6 +60,19 @@ def bench_lego(run_dir: Path, repeats: int) -> dict:
         "fps_800": render_speed(r, f.c2w, f.intr, 800, max(1, repeats // 4)),
         "threads": torch.get_num_threads(),
     }
+
+
+def bench_speed(run_dir: Path, repeats: int) -> dict:
+    """Render speed and size of a run's tree alone (first held-out camera of its dataset)."""
+    run = load_run(run_dir)
+    ds = load_dataset(Path(run.meta["dataset"]))
+    _, test = split_frames(ds, RunConfig(holdout_every=8))
+    r = TreeRenderer(run.tree())
+    f = test[0]
+    return {"run": str(run_dir), "tree_mb": run.tree_path.stat().st_size / 1e6,
+            "fps_256": render_speed(r, f.c2w, f.intr, 256, repeats),
+            "fps_800": render_speed(r, f.c2w, f.intr, 800, max(1, repeats // 4)),
+            "threads": torch.get_num_threads()}
 
 
 def bench_fox(run_dir: Path) -> dict:
@@ -125,7 +139,7 @@ def bench_synth(out: Path, minutes: float) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("part", choices=["lego", "fox", "synth"])
+    ap.add_argument("part", choices=["lego", "fox", "synth", "speed"])
     ap.add_argument("path", type=Path, help="run folder (lego, fox) or output folder (synth)")
     ap.add_argument("--minutes", type=float, default=10.0)
     ap.add_argument("--repeats", type=int, default=8)
@@ -133,6 +147,8 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     if a.part == "lego":
         res = bench_lego(a.path, a.repeats)
+    elif a.part == "speed":
+        res = bench_speed(a.path, a.repeats)
     elif a.part == "fox":
         res = bench_fox(a.path)
     else:
