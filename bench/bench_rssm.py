@@ -63,7 +63,8 @@ def quality(work: Path, minutes: float, seconds: float, size: int, batch: int, s
     # only the moving-camera dataset to compare with).
     model = rssm.load_model(run)
     data = rssm.load_sequences(ds, size)
-    rep = rssm.run_eval(model, data, run / "report-still", [], still_truth=still["truth"],
+    rep = rssm.run_eval(model, data, run / "report-still",
+                        torch.load(run / "checkpoint.pt", weights_only=False)["history"], still_truth=still["truth"],
                         still_start=(still["first"], still["view"]))
     ev = rep.to_json()
     return {"dataset_frames": len(data.rgba), "train_sequences": len(data.starts("train")),
