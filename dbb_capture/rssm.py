@@ -461,13 +461,26 @@ def train(state: TrainState, data: SequenceData, tcfg: TrainConfig, ckpt: Path |
     A step whose loss or gradient is not finite is skipped (optimiser untouched) and counted;
     ``max_bad_steps`` in a row end training with a :class:`DbbError`.
     """
-    model, device = state.model, next(state.model.parameters()).device
     starts = data.starts("train")
     rng = np.random.default_rng(tcfg.seed + state.step)
+    state.model.train()
+    try:
+        _train_loop(state, data, tcfg, ckpt, on_step, starts, rng)
+    except KeyboardInterrupt:
+        if ckpt is not None:             # an interrupted run resumes from here (--resume)
+            state.save(ckpt)
+        raise
+    if ckpt is not None:
+        state.save(ckpt)
+    return state
+
+
+def _train_loop(state: TrainState, data: SequenceData, tcfg: TrainConfig, ckpt: Path | None, on_step,
+                starts: np.ndarray, rng: np.random.Generator) -> None:
+    model, device = state.model, next(state.model.parameters()).device
     last_ckpt = time.perf_counter()
     t_prev = time.perf_counter()
     in_a_row = 0
-    model.train()
     while not _done(state, tcfg):
         pick = starts[rng.integers(0, len(starts), tcfg.batch)]
         x, v = _batch(data, pick, device)
@@ -499,9 +512,6 @@ def train(state: TrainState, data: SequenceData, tcfg: TrainConfig, ckpt: Path |
         if ckpt is not None and now - last_ckpt > tcfg.checkpoint_seconds:
             state.save(ckpt)
             last_ckpt = now
-    if ckpt is not None:
-        state.save(ckpt)
-    return state
 
 
 def _done(state: TrainState, tcfg: TrainConfig) -> bool:
