@@ -48,7 +48,7 @@ def trained(tmp_path_factory):
     bank = build_ray_bank([f for f in frames if f.split == "train"], 1, vol)
     torch.manual_seed(0)
     state = TrainState(new_field(TINY, vol, torch.device("cpu")))
-    state = train(state, bank, Budget(steps=80), checkpoint=folder / "ckpt.pt")
+    state = train(state, bank, Budget(steps=50), checkpoint=folder / "ckpt.pt")
     return frames, vol, state, folder
 
 

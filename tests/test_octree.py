@@ -79,7 +79,7 @@ def baked(tmp_path_factory):
     cfg = FieldConfig(res_start=16, res_max=32, batch_rays=512, upsample_at=(0.3,), tv_points=2048)
     torch.manual_seed(0)
     state = train(TrainState(new_field(cfg, vol, torch.device("cpu"))),
-                  build_ray_bank(frames, 1, vol), Budget(steps=50))
+                  build_ray_bank(frames, 1, vol), Budget(steps=30))
     tree = bake(state.field)
     return frames, vol, state, tree, folder
 
