@@ -12,7 +12,6 @@ Kinds: video files (PyAV; display rotation honoured), image folders (jpg/png), R
 
 from __future__ import annotations
 
-import io as _io
 import json
 import zipfile
 from dataclasses import dataclass

@@ -27,7 +27,7 @@ import numpy as np
 from .board import BoardSpec
 from .cameras import Intrinsics, invert_rigid, rigid
 from .errors import DbbError
-from .io import Frame, FootageSource, blurry_mask, prefetched, sharpness, to_gray8
+from .io import FootageSource, blurry_mask, prefetched, sharpness, to_gray8
 
 
 # --------------------------------------------------------------------------- detection

@@ -9,7 +9,6 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from dbb_capture.cameras import Intrinsics, look_at
 from dbb_capture.datasets import write_transforms
 from dbb_capture.fields import (Budget, FieldConfig, TrainState, build_ray_bank, frame_tensors, new_field,
                                 psnr, render_image, train)
