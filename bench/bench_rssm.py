@@ -31,11 +31,11 @@ def speed(size: int, steps: int = 300) -> dict:
         h, z = ts.start(torch.rand(1, 4, size, size), torch.tensor([[30.0, 40.0, 0.7]]))
         view = torch.tensor([[30.0, 40.0, 0.7]])
         for _ in range(30):                      # warm-up (TorchScript profiling runs)
-            h, z, x = ts.step(h, z, view)
+            h, z, _ = ts.step(h, z, view)
         t, c = time.perf_counter(), time.process_time()
         for i in range(steps):
             view = torch.tensor([[30.0 + 0.1 * i, 40.0, 0.7]])
-            h, z, x = ts.step(h, z, view)
+            h, z, _x = ts.step(h, z, view)
         dt, dc = time.perf_counter() - t, time.process_time() - c
     # CPU seconds say what the step costs when the machine is shared (wall time then also
     # counts the time other processes hold the cores).

@@ -50,7 +50,7 @@ from .crops import sequence_windows
 from .datasets import find_dataset_file, load_dataset, load_rgba
 from .errors import DbbError
 from .outputs import atomic_dir, read_json, write_json
-from .progress import console, progress
+from .progress import progress
 
 RUN_FORMAT = "dbb-rssm-run"
 SIZES = (32, 64, 128, 256)
@@ -84,7 +84,7 @@ class RssmConfig:
                 raise DbbError(f"RSSM {f} must be positive")
 
     @classmethod
-    def from_json(cls, d: dict) -> "RssmConfig":
+    def from_json(cls, d: dict) -> RssmConfig:
         names = {f.name for f in fields(cls)}
         return cls(**{k: v for k, v in d.items() if k in names})
 
@@ -434,7 +434,7 @@ class TrainState:
         tmp.replace(path)
 
     @classmethod
-    def load(cls, path: Path, tcfg: TrainConfig, device: torch.device) -> "TrainState":
+    def load(cls, path: Path, tcfg: TrainConfig, device: torch.device) -> TrainState:
         try:
             ck = torch.load(path, map_location=device, weights_only=False)
             model = Rssm(RssmConfig.from_json(ck["config"])).to(device)
@@ -586,7 +586,7 @@ class EvalReport:
         return float(np.mean(getattr(self, metric)[method]))
 
     def to_json(self) -> dict:
-        r = lambda xs: [round(float(v), 4) for v in xs]  # noqa: E731
+        r = lambda xs: [round(float(v), 4) for v in xs]
         return {"split": self.split, "windows": self.windows, "steps": self.steps,
                 "metric_space": "premultiplied RGBA in [0, 1]",
                 "psnr_db": {k: r(v) for k, v in self.psnr.items()},
@@ -821,8 +821,8 @@ def write_run(out: Path, state: TrainState, data: SequenceData, dataset: Path, t
                          "wall_seconds_this_session": round(wall, 1), "budget_minutes": tcfg.minutes,
                          "budget_steps": tcfg.steps, "batch": tcfg.batch, "lr": tcfg.lr,
                          "non_finite_steps_skipped": state.bad_steps,
-                         "train_sequences": int(len(data.starts("train"))),
-                         "test_sequences": int(len(data.starts("test"))),
+                         "train_sequences": len(data.starts("train")),
+                         "test_sequences": len(data.starts("test")),
                          "final": state.history[-1] if state.history else None},
             "eval": report.to_json(),
             "report": "report/",
@@ -907,7 +907,7 @@ def synthetic_crops(out: Path, seconds: float = 60.0, fps: float = 10.0, size: i
     cfg = SynthConfig(kind="dynamic", seconds=seconds, fps=fps, seed=seed, background_seconds=None)
     rng = np.random.default_rng(seed)
     scene = make_scene(cfg, rng)
-    times = np.arange(int(round(seconds * fps))) / fps
+    times = np.arange(round(seconds * fps)) / fps
     poses = camera_path(cfg, scene, times, rng)
     intr = cfg.intrinsics()
     center, radius = scene.obj.bounding_sphere(times[:: max(1, len(times) // 200)])

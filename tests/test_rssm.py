@@ -125,7 +125,6 @@ def test_tiny_overfit_loss_drops(data):
 
 def test_run_folder_cli_resume_and_eval(crops, tmp_path):
     from click.testing import CliRunner
-
     from dbb_capture.cli import train as cli
 
     out = tmp_path / "run"
@@ -162,7 +161,7 @@ def test_eval_on_a_static_sequence_copy_first_is_perfect(data):
     still = rssm.SequenceData(data.source, np.repeat(data.rgba[:1], 30, 0), np.repeat(data.views[:1], 30, 0),
                               np.array(["train"] * 15 + ["test"] * 15), np.arange(30) / 10.0,
                               [(0, "train"), (15, "test")], 11)
-    rep, figs = rssm.evaluate(rssm.Stepper(rssm.Rssm(SMALL).eval()), still, rollout_steps=8)
+    rep, _figs = rssm.evaluate(rssm.Stepper(rssm.Rssm(SMALL).eval()), still, rollout_steps=8)
     assert rep.split == "test" and rep.windows == 1
     assert rep.psnr["copy_first"] == [99.0] * 10 and rep.psnr["near"] == [99.0] * 10
     assert rep.ssim["copy_first"] == pytest.approx([1.0] * 10)
