@@ -302,6 +302,9 @@ def _shade(albedo, normal, points, eye, light, specular: float = 0.0):
     return col
 
 
+_ONES3 = torch.ones(3)
+
+
 def _intersect_object(obj: ObjectModel, t_obj: float, o: torch.Tensor, d: torch.Tensor):
     """Nearest ellipsoid hit for rays from ``o`` (3,) along ``d`` (M, 3).
 
@@ -316,8 +319,9 @@ def _intersect_object(obj: ObjectModel, t_obj: float, o: torch.Tensor, d: torch.
         inv_r = 1.0 / torch.tensor(e.radii, dtype=torch.float32)
         oc = ((o - torch.from_numpy(c).float()) @ Rt) * inv_r         # (3,) in the unit sphere frame
         dl = (d @ Rt) * inv_r                                          # (M, 3)
-        a = (dl * dl).sum(-1)
-        b = 2 * (dl * oc).sum(-1)
+        # Matrix-vector products: much faster in torch than reductions over a trailing axis of 3.
+        a = (dl * dl) @ _ONES3
+        b = 2 * (dl @ oc)
         cc = float((oc * oc).sum() - 1.0)
         disc = b * b - 4 * a * cc
         hit = disc > 0
