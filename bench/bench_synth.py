@@ -1,8 +1,9 @@
 """Speed of the synthetic capture renderer: seconds per frame at a given resolution.
 
-Measures (a) the renderer alone (ray casting, shading, anti-aliasing) and (b) a whole
-`write_capture` (render + sensor noise + H.264 encoding + masks), per frame, and prints a
-Markdown table row for docs/benchmarks.md.
+Measures (a) the renderer alone in this process (ray casting, shading, anti-aliasing) and
+(b) a whole `write_capture` (render in worker processes + sensor noise + H.264 encoding +
+masks; worker start-up included), per frame, and prints a Markdown table row for
+docs/benchmarks.md.
 
     .venv/bin/python bench/bench_synth.py --resolution 640x480 --frames 30
 """
@@ -28,10 +29,11 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=30)
     ap.add_argument("--samples", type=int, default=2)
     ap.add_argument("--kind", default="dynamic")
+    ap.add_argument("--workers", type=int, default=0, help="render processes (0: write_capture's default)")
     a = ap.parse_args()
     w, h = (int(v) for v in a.resolution.split("x"))
     cfg = SynthConfig(kind=a.kind, width=w, height=h, samples=a.samples, seconds=a.frames / 10,
-                      background_seconds=None)
+                      background_seconds=None, workers=a.workers)
     scene = make_scene(cfg, np.random.default_rng(0))
     r = Renderer(cfg.intrinsics(), cfg.samples)
     times = np.arange(a.frames) / cfg.fps
@@ -43,10 +45,13 @@ def main() -> None:
         r.render(scene, poses[i], float(times[i]))
         per.append(time.perf_counter() - t0)
     with tempfile.TemporaryDirectory() as d:
+        t0 = time.perf_counter()
         res = write_capture(cfg, Path(d) / "cap")
+        total = time.perf_counter() - t0
     load = os.getloadavg()[0]
-    print(f"| {w}x{h}, {a.samples}x{a.samples} samples, {a.kind} | {statistics.median(per) * 1000:.0f} ms "
-          f"| {res.seconds_per_frame * 1000:.0f} ms | {torch.get_num_threads()} threads, "
+    print(f"| {w}x{h}, {a.samples}x{a.samples} samples, {a.kind}, {a.frames} frames "
+          f"| {statistics.median(per) * 1000:.0f} ms | {res.seconds_per_frame * 1000:.0f} ms "
+          f"| {total:.1f} s | {torch.get_num_threads()} threads / {a.workers or 'default'} workers, "
           f"{os.cpu_count()} cores, load {load:.1f} |")
 
 

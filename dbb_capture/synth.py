@@ -17,6 +17,7 @@ to score novel views.
 from __future__ import annotations
 
 import math
+import os
 import time as _time
 from dataclasses import asdict, dataclass, field
 from fractions import Fraction
@@ -57,6 +58,7 @@ class SynthConfig:
     distance_range_m: tuple[float, float] = (0.5, 0.85)
     roll_deg: float = 4.0
     crf: int = 18                            # H.264 quality (lower: better, larger)
+    workers: int = 0                         # render processes (0: 2 on multi-core machines for long captures)
 
     def intrinsics(self) -> Intrinsics:
         f = 0.5 * self.width / math.tan(math.radians(self.hfov_deg) / 2)
@@ -570,6 +572,59 @@ class _VideoWriter:
         self.container.close()
 
 
+# Per-process state of the render workers (set once by _init_worker).
+_WORKER: dict = {}
+
+
+def _init_worker(scene: Scene, intr: Intrinsics, samples: int, noise: float, seed: int) -> None:
+    # One intra-op thread per process: two processes beat two threads spinning on one frame.
+    torch.set_num_threads(1)
+    _WORKER.update(scene=scene, empty=scene.without_object(), renderer=Renderer(intr, samples),
+                   noise=noise, seed=seed)
+
+
+def _render_job(job: tuple[str, int, np.ndarray, float]) -> tuple[np.ndarray, np.ndarray]:
+    """One finished frame: (noisy RGB (H, W, 3) uint8, object coverage (H, W) uint8)."""
+    which, i, c2w, t = job
+    w = _WORKER
+    img, cover = w["renderer"].render(w["scene"] if which == "video" else w["empty"], c2w, t)
+    # Noise seeded per frame: the same capture whatever the number of processes.
+    rng = np.random.default_rng([w["seed"], 3 if which == "video" else 4, i])
+    return sensor(img, w["noise"], rng), np.round(cover * 255).astype(np.uint8)
+
+
+class _FramePool:
+    """Renders frames in order, in this process or in ``workers`` spawned processes."""
+
+    def __init__(self, scene: Scene, intr: Intrinsics, cfg: SynthConfig, workers: int):
+        self.args = (scene, intr, cfg.samples, cfg.noise, cfg.seed)
+        self.workers = max(1, workers)
+        self.pool = None
+
+    def __enter__(self) -> "_FramePool":
+        if self.workers > 1:
+            import multiprocessing as mp
+            from concurrent.futures import ProcessPoolExecutor
+
+            self.pool = ProcessPoolExecutor(self.workers, mp_context=mp.get_context("spawn"),
+                                            initializer=_init_worker, initargs=self.args)
+        else:
+            threads = torch.get_num_threads()
+            _init_worker(*self.args)
+            torch.set_num_threads(threads)  # in this process, keep the caller's threads
+        return self
+
+    def frames(self, which: str, poses: np.ndarray, times: np.ndarray):
+        jobs = [(which, i, poses[i], float(times[i])) for i in range(len(poses))]
+        if self.pool is None:
+            return map(_render_job, jobs)
+        return self.pool.map(_render_job, jobs, chunksize=2)
+
+    def __exit__(self, *exc) -> None:
+        if self.pool is not None:
+            self.pool.shutdown(cancel_futures=True)
+
+
 def _frames_json(poses: np.ndarray, times: np.ndarray) -> list[dict]:
     return [{"index": i, "time": round(float(t), 6),
              "transform_matrix": opengl_from_opencv(c2w).round(9).tolist()}
@@ -587,11 +642,9 @@ def write_capture(cfg: SynthConfig, out: Path, overwrite: bool = False,
     """
     if cfg.width % 2 or cfg.height % 2:
         raise DbbError(f"resolution {cfg.width}x{cfg.height}: width and height must be even (H.264)")
-    torch.set_num_threads(max(1, torch.get_num_threads()))
     rng = np.random.default_rng(cfg.seed)
     scene = make_scene(cfg, rng)
     intr = cfg.intrinsics()
-    renderer = Renderer(intr, cfg.samples)
     n = max(1, int(round(cfg.seconds * cfg.fps)))
     times = np.arange(n) / cfg.fps
     poses = camera_path(cfg, scene, times, np.random.default_rng([cfg.seed, 1]))
@@ -599,7 +652,6 @@ def write_capture(cfg: SynthConfig, out: Path, overwrite: bool = False,
     btimes = np.arange(nb) / cfg.fps
     bposes = (camera_path(cfg, scene, btimes, np.random.default_rng([cfg.seed, 2])) if nb
               else np.zeros((0, 4, 4)))
-    noise_rng = np.random.default_rng([cfg.seed, 3])
     center, radius = scene.obj_sphere
     t0 = _time.perf_counter()
     with atomic_dir(Path(out), overwrite=overwrite) as tmp:
@@ -616,23 +668,21 @@ def write_capture(cfg: SynthConfig, out: Path, overwrite: bool = False,
             "intrinsics": intr.to_json(), "fps": cfg.fps,
             "video": _frames_json(poses, times), "background": _frames_json(bposes, btimes)})
         write_json(gt / "synth_config.json", {**asdict(cfg), "board": cfg.board.to_json()})
-        with progress() as prog:
+        workers = cfg.workers or (min(2, os.cpu_count() or 1) if n + nb >= 40 else 1)
+        with progress() as prog, _FramePool(scene, intr, cfg, workers) as pool:
             task = prog.add_task("render video", total=n, info="")
             vw = _VideoWriter(tmp / "video.mp4", cfg.width, cfg.height, cfg.fps, cfg.crf)
-            for i in range(n):
-                img, cover = renderer.render(scene, poses[i], float(times[i]))
-                vw.write(sensor(img, cfg.noise, noise_rng))
-                cv2.imwrite(str(gt / "masks" / f"{i:05d}.png"), np.round(cover * 255).astype(np.uint8))
+            for i, (rgb, mask) in enumerate(pool.frames("video", poses, times)):
+                vw.write(rgb)
+                cv2.imwrite(str(gt / "masks" / f"{i:05d}.png"), mask)
                 prog.advance(task)
             vw.close()
             spf = (_time.perf_counter() - t0) / n
             if nb:
-                empty = scene.without_object()
                 task = prog.add_task("render clean plate", total=nb, info="")
                 vw = _VideoWriter(tmp / "background.mp4", cfg.width, cfg.height, cfg.fps, cfg.crf)
-                for i in range(nb):
-                    img, _ = renderer.render(empty, bposes[i], float(btimes[i]))
-                    vw.write(sensor(img, cfg.noise, noise_rng))
+                for rgb, _ in pool.frames("background", bposes, btimes):
+                    vw.write(rgb)
                     prog.advance(task)
                 vw.close()
     return SynthResult(Path(out), n, nb, cfg.width, cfg.height, cfg.fps, spf)

@@ -169,3 +169,20 @@ def test_clean_plate_has_no_object(tiny_static_capture):
     a = np.array(cams["video"][0]["transform_matrix"])
     b = np.array(cams["background"][0]["transform_matrix"])
     assert np.linalg.norm(a[:3, 3] - b[:3, 3]) > 0.01
+
+
+def test_worker_processes_render_the_same_capture(tmp_path):
+    import av
+    from dbb_capture.synth import write_capture
+
+    outs = []
+    for workers in (1, 2):
+        cfg = SynthConfig(kind="dynamic", seconds=0.8, fps=5, width=160, height=120,
+                          background_seconds=0.4, seed=9, workers=workers)
+        write_capture(cfg, tmp_path / f"w{workers}")
+        with av.open(str(tmp_path / f"w{workers}" / "video.mp4")) as c:
+            outs.append(np.stack([f.to_ndarray(format="rgb24") for f in c.decode(video=0)]))
+        masks = sorted((tmp_path / f"w{workers}" / "ground_truth" / "masks").iterdir())
+        outs.append(np.stack([cv2.imread(str(m), cv2.IMREAD_UNCHANGED) for m in masks]))
+    assert outs[0].shape == (4, 120, 160, 3)
+    assert np.array_equal(outs[0], outs[2]) and np.array_equal(outs[1], outs[3])
