@@ -76,3 +76,18 @@ def read_json(path: Path, what: str = "file") -> Any:
         raise DbbError(f"{what} not found: {path}") from None
     except json.JSONDecodeError as e:
         raise DbbError(f"{what} {path} is not valid JSON: {e.msg} at line {e.lineno}") from None
+
+
+def run_work_dir(out: Path) -> Path:
+    """Scratch folder of a training run beside ``out``: its checkpoint lives here until the run ends."""
+    out = Path(out)
+    return out.parent / f".{out.name}.work"
+
+
+def resume_checkpoint(out: Path, name: str = "checkpoint.pt") -> Path:
+    """The checkpoint ``--resume`` continues from: an interrupted run's, else the finished run's."""
+    ckpt = run_work_dir(out) / name
+    src = ckpt if ckpt.is_file() else Path(out) / name
+    if not src.is_file():
+        raise DbbError(f"nothing to resume: neither {ckpt} nor {Path(out) / name} exists")
+    return src

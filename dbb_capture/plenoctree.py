@@ -35,7 +35,7 @@ from .errors import DbbError
 from .fields import (COLOUR_ACTIVATION, Budget, FieldConfig, TrainState, VoxelField, build_ray_bank,
                      frame_tensors, new_field, pick_device, psnr, render_image, train)
 from .octree import PlenOctree, TreeRenderer, bake
-from .outputs import atomic_dir, read_json, write_json
+from .outputs import atomic_dir, read_json, resume_checkpoint, run_work_dir, write_json
 from .progress import progress
 
 RUN_FORMAT = "dbb-plenoctree-run"
@@ -100,10 +100,6 @@ def split_frames(ds: PosedDataset, cfg: RunConfig) -> tuple[list[Frame], list[Fr
     return train_f, test_f
 
 
-def _work_dir(out: Path) -> Path:
-    return out.parent / f".{out.name}.work"
-
-
 def train_run(dataset: Path, out: Path, cfg: RunConfig, field_cfg: FieldConfig | None = None,
               resume: bool = False, overwrite: bool = False, quiet: bool = False) -> Run:
     """Train a field on ``dataset``, bake it, and write the run folder ``out`` (atomically)."""
@@ -121,14 +117,11 @@ def train_run(dataset: Path, out: Path, cfg: RunConfig, field_cfg: FieldConfig |
     mode = cfg.mode if cfg.mode != "auto" else ("object" if ds.rgba else "scene")
     volume = ds.volume or estimate_volume(ds.frames)
     device = pick_device()
-    work = _work_dir(out)
+    work = run_work_dir(out)
     ckpt = work / "checkpoint.pt"
     state = None
     if resume:
-        src = ckpt if ckpt.is_file() else out / "checkpoint.pt"
-        if not src.is_file():
-            raise DbbError(f"nothing to resume: neither {ckpt} nor {out / 'checkpoint.pt'} exists")
-        state = TrainState.load(src, device)
+        state = TrainState.load(resume_checkpoint(out), device)
         volume = state.field.volume
         mode = state.field.cfg.mode
     fcfg = field_cfg or FieldConfig()

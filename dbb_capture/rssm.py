@@ -49,7 +49,7 @@ from torch.nn import functional as F
 from .crops import sequence_windows
 from .datasets import find_dataset_file, load_dataset, load_rgba
 from .errors import DbbError
-from .outputs import atomic_dir, read_json, write_json
+from .outputs import atomic_dir, read_json, resume_checkpoint, run_work_dir, write_json
 from .progress import progress
 
 RUN_FORMAT = "dbb-rssm-run"
@@ -745,10 +745,6 @@ def _grid(rows: list[np.ndarray]) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- run folder
-def _work_dir(out: Path) -> Path:
-    return out.parent / f".{out.name}.work"
-
-
 def train_run(dataset: Path, out: Path, cfg: RssmConfig, tcfg: TrainConfig, resume: bool = False,
               overwrite: bool = False, quiet: bool = False) -> dict:
     """Train on ``dataset`` and write the run folder ``out`` atomically; returns run.json."""
@@ -760,14 +756,11 @@ def train_run(dataset: Path, out: Path, cfg: RssmConfig, tcfg: TrainConfig, resu
     if (tcfg.minutes is not None and tcfg.minutes <= 0) or (tcfg.steps is not None and tcfg.steps <= 0):
         raise DbbError("--minutes and --steps must be positive")
     device = pick_device()
-    work = _work_dir(out)
+    work = run_work_dir(out)
     ckpt = work / "checkpoint.pt"
     state = None
     if resume:
-        src = ckpt if ckpt.is_file() else out / "checkpoint.pt"
-        if not src.is_file():
-            raise DbbError(f"nothing to resume: neither {ckpt} nor {src} exists")
-        state = TrainState.load(src, tcfg, device)
+        state = TrainState.load(resume_checkpoint(out), tcfg, device)
         cfg = state.model.cfg
     cfg.validate()
     data = load_sequences(dataset, cfg.size)
