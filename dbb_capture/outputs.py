@@ -91,3 +91,16 @@ def resume_checkpoint(out: Path, name: str = "checkpoint.pt") -> Path:
     if not src.is_file():
         raise DbbError(f"nothing to resume: neither {ckpt} nor {Path(out) / name} exists")
     return src
+
+
+def check_run_output(out: Path, overwrite: bool, resume: bool) -> None:
+    """A training run may write ``out`` only if it is new, replaced (--overwrite) or resumed."""
+    if Path(out).exists() and not (overwrite or resume):
+        raise DbbError(f"{out} already exists (pass --overwrite to replace it, --resume to continue it)")
+
+
+def training_minutes(minutes: float | None, steps: int | None, default: float) -> float | None:
+    """The wall-clock budget of a run: ``default`` minutes when neither budget is given."""
+    if (minutes is not None and minutes <= 0) or (steps is not None and steps <= 0):
+        raise DbbError("--minutes and --steps must be positive")
+    return default if minutes is None and steps is None else minutes

@@ -35,7 +35,8 @@ from .errors import DbbError
 from .fields import (COLOUR_ACTIVATION, Budget, FieldConfig, TrainState, VoxelField, build_ray_bank,
                      frame_tensors, new_field, pick_device, psnr, render_image, train)
 from .octree import PlenOctree, TreeRenderer, bake
-from .outputs import atomic_dir, read_json, resume_checkpoint, run_work_dir, write_json
+from .outputs import (atomic_dir, check_run_output, read_json, resume_checkpoint, run_work_dir,
+                      training_minutes, write_json)
 from .progress import progress
 
 RUN_FORMAT = "dbb-plenoctree-run"
@@ -104,12 +105,8 @@ def train_run(dataset: Path, out: Path, cfg: RunConfig, field_cfg: FieldConfig |
               resume: bool = False, overwrite: bool = False, quiet: bool = False) -> Run:
     """Train a field on ``dataset``, bake it, and write the run folder ``out`` (atomically)."""
     out = Path(out)
-    if out.exists() and not (overwrite or resume):
-        raise DbbError(f"{out} already exists (pass --overwrite to replace it, --resume to continue it)")
-    if cfg.minutes is None and cfg.steps is None:
-        cfg = replace(cfg, minutes=10.0)
-    if (cfg.minutes is not None and cfg.minutes <= 0) or (cfg.steps is not None and cfg.steps <= 0):
-        raise DbbError("--minutes and --steps must be positive")
+    check_run_output(out, overwrite, resume)
+    cfg = replace(cfg, minutes=training_minutes(cfg.minutes, cfg.steps, default=10.0))
     if cfg.downscale < 1:
         raise DbbError("--downscale must be >= 1")
     ds = load_dataset(Path(dataset))

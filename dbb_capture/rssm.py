@@ -49,7 +49,8 @@ from torch.nn import functional as F
 from .crops import sequence_windows
 from .datasets import find_dataset_file, load_dataset, load_rgba
 from .errors import DbbError
-from .outputs import atomic_dir, read_json, resume_checkpoint, run_work_dir, write_json
+from .outputs import (atomic_dir, check_run_output, read_json, resume_checkpoint, run_work_dir,
+                      training_minutes, write_json)
 from .progress import progress
 
 RUN_FORMAT = "dbb-rssm-run"
@@ -749,12 +750,8 @@ def train_run(dataset: Path, out: Path, cfg: RssmConfig, tcfg: TrainConfig, resu
               overwrite: bool = False, quiet: bool = False) -> dict:
     """Train on ``dataset`` and write the run folder ``out`` atomically; returns run.json."""
     out = Path(out)
-    if out.exists() and not (overwrite or resume):
-        raise DbbError(f"{out} already exists (pass --overwrite to replace it, --resume to continue it)")
-    if tcfg.minutes is None and tcfg.steps is None:
-        tcfg = replace(tcfg, minutes=15.0)
-    if (tcfg.minutes is not None and tcfg.minutes <= 0) or (tcfg.steps is not None and tcfg.steps <= 0):
-        raise DbbError("--minutes and --steps must be positive")
+    check_run_output(out, overwrite, resume)
+    tcfg = replace(tcfg, minutes=training_minutes(tcfg.minutes, tcfg.steps, default=15.0))
     device = pick_device()
     work = run_work_dir(out)
     ckpt = work / "checkpoint.pt"
