@@ -1,0 +1,285 @@
+"""Proxy meshes for physics (thesis 4.4): a closed collision mesh and its convex hull, in bundle space.
+
+Bundle space is object-centred, metres, glTF axes: +Y is "up" (the board normal on the
+cameras' side), +X the board's x axis made orthogonal to up, +Z = X x Y. ``bundle_from_board``
+(4, 4) maps board-frame points into it.
+
+- Static objects: marching cubes (scikit-image) on the run's density grid, thresholded at half
+  the object's typical interior density; only the largest connected part is kept, cavities are
+  filled, the surface is closed (the grid is padded) and decimated with open3d to at most
+  ``max_triangles``; if decimation opens the surface, a coarser grid is meshed instead.
+- Dynamic objects: the visual hull carved from the posed RGBA crop mattes of the dataset
+  (a voxel stays when it projects inside the matte in most views that see it), or a sphere of
+  the mattes' mean area where carving cannot work (too few views, too narrow a spread of
+  views, nothing left); :attr:`ProxyMesh.method` and ``note`` say which and why.
+
+Both go into one ``.glb``: nodes ``<name>-colonly`` (the mesh) and ``<name>-convcolonly`` (its
+convex hull), the suffixes Godot reads as collision shapes.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import DbbError
+
+MAX_TRIANGLES = 5000
+
+
+@dataclass
+class ProxyMesh:
+    """A closed triangle mesh and its convex hull in bundle space (metres, +Y up)."""
+
+    vertices: np.ndarray         # (V, 3) float64
+    faces: np.ndarray            # (F, 3) int64, counter-clockwise seen from outside
+    hull_vertices: np.ndarray    # (Vh, 3) float64
+    hull_faces: np.ndarray       # (Fh, 3) int64
+    method: str                  # "marching cubes", "visual hull" or "sphere"
+    note: str                    # how it was made (threshold, views) or why a sphere
+
+    @property
+    def watertight(self) -> bool:
+        return _trimesh(self.vertices, self.faces).is_watertight
+
+    def to_json(self, file: str) -> dict:
+        return {"file": file, "method": self.method, "note": self.note, "triangles": int(len(self.faces)),
+                "hull_triangles": int(len(self.hull_faces)), "watertight": bool(self.watertight),
+                "volume_m3": float(abs(_trimesh(self.vertices, self.faces).volume)),
+                "space": "bundle (object-centred, metres, +Y up)"}
+
+
+# --------------------------------------------------------------------------- bundle space
+def bundle_from_board(center: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """4x4 taking board-frame points to bundle space (origin ``center`` (3,), +Y along ``up`` (3,)).
+
+    X is the board's x axis made orthogonal to up (the y axis if x is parallel to up), Z = X x Y.
+    """
+    y = np.asarray(up, float) / np.linalg.norm(up)
+    ref = np.array([1.0, 0.0, 0.0]) if abs(y[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = ref - (ref @ y) * y
+    x /= np.linalg.norm(x)
+    z = np.cross(x, y)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, y, z])            # rows: bundle axes in board coordinates
+    T[:3, 3] = -T[:3, :3] @ np.asarray(center, float)
+    return T
+
+
+def transform_points(T: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 ``T`` to points (..., 3)."""
+    return np.asarray(p, float) @ T[:3, :3].T + T[:3, 3]
+
+
+# --------------------------------------------------------------------------- voxels -> mesh
+def _trimesh(v: np.ndarray, f: np.ndarray):
+    import trimesh
+
+    return trimesh.Trimesh(np.asarray(v, float), np.asarray(f, np.int64), process=False)
+
+
+def clean_occupancy(mask: np.ndarray) -> np.ndarray:
+    """Largest 6-connected part of a boolean grid (G, G, G), its cavities filled."""
+    from scipy import ndimage
+
+    lab, n = ndimage.label(mask)
+    if n == 0:
+        return mask.copy()
+    sizes = np.bincount(lab.ravel())[1:]
+    keep = lab == (1 + int(np.argmax(sizes)))
+    return ndimage.binary_fill_holes(keep)
+
+
+def _decimate(v: np.ndarray, f: np.ndarray, max_triangles: int) -> tuple[np.ndarray, np.ndarray]:
+    import open3d as o3d
+
+    m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(v), o3d.utility.Vector3iVector(f.astype(np.int32)))
+    m = m.simplify_quadric_decimation(target_number_of_triangles=int(max_triangles))
+    m.remove_degenerate_triangles()
+    m.remove_unreferenced_vertices()
+    return np.asarray(m.vertices, float), np.asarray(m.triangles, np.int64)
+
+
+def occupancy_mesh(mask: np.ndarray, bbox_min: np.ndarray, bbox_max: np.ndarray,
+                   max_triangles: int = MAX_TRIANGLES) -> tuple[np.ndarray, np.ndarray]:
+    """Closed surface (V, 3) board-frame metres, faces (F, 3) of a cleaned occupancy grid.
+
+    ``mask`` (G, G, G) bool indexed [x, y, z] at cell centres of the box [bbox_min, bbox_max].
+    The grid is padded so the surface closes at the box; after decimation to ``max_triangles``
+    the mesh must still be watertight, else the grid is halved and meshed again.
+    """
+    from scipy import ndimage
+    from skimage.measure import marching_cubes
+
+    mask = clean_occupancy(np.asarray(mask, bool))
+    if not mask.any():
+        raise DbbError("nothing occupied to mesh")
+    lo, hi = np.asarray(bbox_min, float), np.asarray(bbox_max, float)
+    grid = mask.astype(np.float32)
+    for _ in range(4):
+        G = np.asarray(grid.shape, float)
+        cell = (hi - lo) / G
+        # A light blur turns the voxel staircase into a smooth level set at the same boundary.
+        vol = np.pad(ndimage.gaussian_filter(grid, 0.6), 2)
+        v, f, _, _ = marching_cubes(vol, 0.5, spacing=tuple(cell))
+        v = v + lo + cell * (0.5 - 2)
+        f = f[:, ::-1]                     # skimage winds inward for a solid above the level
+        if len(f) > max_triangles:
+            v, f = _decimate(v, f, max_triangles)
+        tm = _trimesh(v, f)
+        if tm.is_watertight and len(f) <= max_triangles:
+            if tm.volume < 0:
+                f = f[:, ::-1]
+            return v, f
+        grid = ndimage.zoom(grid, 0.5, order=1)
+    raise DbbError("could not make a watertight proxy mesh within the triangle budget")
+
+
+def convex_hull(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Convex hull of points (N, 3): vertices (Vh, 3), outward faces (Fh, 3)."""
+    h = _trimesh(v, np.zeros((0, 3), np.int64)).convex_hull
+    return np.asarray(h.vertices, float), np.asarray(h.faces, np.int64)
+
+
+def _finish(v_board: np.ndarray, f: np.ndarray, T: np.ndarray, method: str, note: str) -> ProxyMesh:
+    v = transform_points(T, v_board)
+    hv, hf = convex_hull(v)
+    return ProxyMesh(v, f, hv, hf, method, note)
+
+
+# --------------------------------------------------------------------------- static: density grid
+def density_level(sigma: np.ndarray) -> float:
+    """Surface threshold of a density grid: half the object's typical interior density.
+
+    Interior = cells above Otsu's threshold of log density (over cells with any density);
+    its median is robust to the few very dense cells a field grows at edges.
+    """
+    from skimage.filters import threshold_otsu
+
+    pos = sigma[sigma > 1e-3 * float(sigma.max())] if sigma.max() > 0 else sigma[:0]
+    if pos.size < 8:
+        raise DbbError("the density grid is empty: the run learned no object")
+    t = math.exp(threshold_otsu(np.log(pos.astype(np.float64))))
+    return 0.5 * float(np.median(pos[pos > t]))
+
+
+def static_proxy(density_grid: Path, T: np.ndarray, max_triangles: int = MAX_TRIANGLES) -> ProxyMesh:
+    """Proxy of a static run from its ``density_grid.npz`` (sigma[x, y, z], bbox_min, bbox_max)."""
+    try:
+        g = np.load(Path(density_grid))
+        sigma = g["sigma"].astype(np.float32)
+        lo, hi = g["bbox_min"].astype(float), g["bbox_max"].astype(float)
+    except (OSError, KeyError, ValueError) as e:
+        raise DbbError(f"cannot read the density grid {density_grid}: {e}") from None
+    level = density_level(sigma)
+    v, f = occupancy_mesh(sigma > level, lo, hi, max_triangles)
+    return _finish(v, f, T, "marching cubes",
+                   f"density grid {sigma.shape[0]}^3 at {level:.4g} per metre (half the interior median); "
+                   "largest part, cavities filled, decimated with open3d")
+
+
+# --------------------------------------------------------------------------- dynamic: visual hull
+def sphere_proxy(radius: float, T: np.ndarray, center: np.ndarray, note: str) -> ProxyMesh:
+    """An icosphere of ``radius`` metres at the object centre (in bundle space: the origin)."""
+    import trimesh
+
+    s = trimesh.creation.icosphere(subdivisions=3, radius=float(radius))
+    v_board = transform_points(np.linalg.inv(T), np.asarray(s.vertices))
+    return _finish(v_board, np.asarray(s.faces, np.int64), T, "sphere", note)
+
+
+def _view_spread_deg(dirs: np.ndarray) -> float:
+    """Largest angle (degrees) between unit view directions (N, 3)."""
+    c = np.clip(dirs @ dirs.T, -1, 1)
+    return float(np.degrees(np.arccos(c.min())))
+
+
+def dynamic_proxy(crops_json: Path, center: np.ndarray, radius: float, T: np.ndarray, res: int = 64,
+                  agree: float = 0.9, max_views: int = 80, min_spread_deg: float = 30.0,
+                  max_triangles: int = MAX_TRIANGLES) -> ProxyMesh:
+    """Visual hull of a crops.json dataset's mattes over the object sphere, else a sphere.
+
+    A voxel of the ``res``^3 grid over the sphere's cube stays when its centre falls inside the
+    matte (alpha > 0.5) in at least ``agree`` of the views that see it; a moving object thus
+    keeps what it occupies most of the time.
+    """
+    from .cameras import project_points
+    from .datasets import load_dataset, load_rgba
+
+    center = np.asarray(center, float)
+    try:
+        ds = load_dataset(Path(crops_json))
+    except DbbError as e:
+        return sphere_proxy(radius, T, center, f"sphere of the object radius: dataset unreadable ({e})")
+    frames = ds.frames[:: max(1, math.ceil(len(ds.frames) / max_views))]
+    ax = center[None] + ((np.arange(res) + 0.5) / res * 2 - 1)[:, None] * radius
+    P = np.stack(np.meshgrid(ax[:, 0], ax[:, 1], ax[:, 2], indexing="ij"), -1).reshape(-1, 3)
+    inside = np.linalg.norm(P - center, axis=1) <= radius
+    votes = np.zeros(len(P), np.int32)
+    seen = np.zeros(len(P), np.int32)
+    areas, dirs = [], []
+    for fr in frames:
+        alpha = load_rgba(fr)[..., 3]
+        h, w = alpha.shape
+        areas.append(float((alpha > 0.5).sum()) / (fr.intr.fx * fr.intr.fy))   # steradians-ish
+        eye = fr.c2w[:3, 3]
+        dirs.append((eye - center) / np.linalg.norm(eye - center))
+        uv = np.round(project_points(P, fr.c2w, fr.intr)).astype(np.int64)
+        ok = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+        seen += ok
+        votes[ok] += alpha[uv[ok, 1], uv[ok, 0]] > 0.5
+    # Sphere of the mattes' mean solid angle, seen from the mean distance.
+    dist = float(np.mean([np.linalg.norm(fr.c2w[:3, 3] - center) for fr in frames]))
+    r_eq = min(radius, dist * math.sin(math.sqrt(max(np.mean(areas), 0.0) / math.pi))) if areas else radius
+    spread = _view_spread_deg(np.array(dirs)) if dirs else 0.0
+    why = None
+    if len(frames) < 3:
+        why = f"only {len(frames)} views"
+    elif spread < min_spread_deg:
+        why = f"views span only {spread:.0f} degrees (need {min_spread_deg:.0f})"
+    keep = inside & (seen >= 3) & (votes >= agree * np.maximum(seen, 1))
+    if why is None and keep.sum() < 8:
+        why = "carving left nothing"
+    if why is None:
+        try:
+            v, f = occupancy_mesh(keep.reshape(res, res, res), center - radius, center + radius, max_triangles)
+        except DbbError as e:
+            why = str(e)
+        else:
+            return _finish(v, f, T, "visual hull",
+                           f"carved from {len(frames)} crop mattes over {spread:.0f} degrees of views, "
+                           f"{res}^3 voxels, kept where inside in >= {agree:.0%} of views")
+    return sphere_proxy(max(r_eq, 1e-3), T, center, f"sphere of the mattes' mean area: visual hull failed ({why})")
+
+
+# --------------------------------------------------------------------------- glTF
+def write_glb(path: Path, proxy: ProxyMesh, name: str = "proxy") -> None:
+    """One ``.glb`` with nodes ``<name>-colonly`` (mesh) and ``<name>-convcolonly`` (convex hull)."""
+    import trimesh
+
+    from .outputs import write_bytes_atomic
+
+    scene = trimesh.Scene()
+    scene.add_geometry(_trimesh(proxy.vertices, proxy.faces), node_name=f"{name}-colonly",
+                       geom_name=f"{name}-colonly")
+    scene.add_geometry(_trimesh(proxy.hull_vertices, proxy.hull_faces), node_name=f"{name}-convcolonly",
+                       geom_name=f"{name}-convcolonly")
+    write_bytes_atomic(Path(path), scene.export(file_type="glb"))
+
+
+def read_glb(path: Path) -> dict:
+    """Meshes of a ``.glb`` by node name: {name: trimesh.Trimesh} (in the file's space)."""
+    import trimesh
+
+    try:
+        scene = trimesh.load(Path(path), file_type="glb", force="scene", process=False)
+    except Exception as e:   # trimesh raises many kinds on a corrupt file
+        raise DbbError(f"cannot read the proxy mesh {path}: {e}") from None
+    out = {}
+    for node in scene.graph.nodes_geometry:
+        T, geom = scene.graph[node]
+        out[node] = scene.geometry[geom].copy().apply_transform(T)
+    return out
