@@ -37,7 +37,7 @@ def static_run(tmp_path_factory):
     write_transforms(folder / "ds" / "transforms.json", frames, vol)
     torch.manual_seed(0)
     cfg = FieldConfig(res_start=16, res_max=32, batch_rays=512, upsample_at=(0.3,), tv_points=2048)
-    train_run(folder / "ds", folder / "run", RunConfig(steps=40), cfg, quiet=True)
+    train_run(folder / "ds", folder / "run", RunConfig(steps=20), cfg, quiet=True)
     return folder, frames
 
 

@@ -1,0 +1,195 @@
+"""Benchmarks for issue 7 (bundles): proxy mesh against the true shape, renders from a bundle
+against the training run's renders, verify against a flipped byte. Figures go to docs/benchmarks.md.
+
+    python bench/bench_bundle.py static RUN OUT [--capture CAPTURE | --seed 0]
+    python bench/bench_bundle.py dynamic RUN OUT
+
+``static``: RUN is a ``dbb-train plenoctree`` run of a synthetic static object; the true shape is
+the object model of ``--capture`` (``dbb-capture synth`` ground truth) or, by default, the object
+``bench_plenoctree.py synth`` renders (``make_object("static", 7x5 board, seed)``). Both shapes are
+voxelised in the board frame (the mesh is taken there by the inverse of ``bundle_from_board``).
+``dynamic``: RUN is a ``dbb-train rssm`` run; renders at the dataset's crop cameras are compared
+with the run's own stepper rolled out from the same first frame and seed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from dbb_capture import bundle as B
+from dbb_capture.cameras import opengl_from_opencv
+from dbb_capture.errors import DbbError
+from dbb_capture.fields import psnr
+from dbb_capture.proxy import read_glb, transform_points
+
+
+def true_occupancy(model, t: float, points: np.ndarray) -> np.ndarray:
+    """Inside the synthetic object (union of posed ellipsoids) at time t, for points (N, 3)."""
+    inside = np.zeros(len(points), bool)
+    for c, R, e in model.posed(t):
+        q = (points - c) @ R / np.asarray(e.radii)
+        inside |= (q ** 2).sum(1) <= 1
+    return inside
+
+
+def mesh_occupancy(v: np.ndarray, f: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Inside a closed mesh, for points (N, 3) (open3d ray casting)."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)), o3d.core.Tensor(f.astype(np.uint32)))
+    occ = scene.compute_occupancy(o3d.core.Tensor(points.astype(np.float32)))
+    return occ.numpy().astype(bool)
+
+
+def flipped_byte_caught(bundle: Path, scratch: Path) -> dict:
+    """Flip one byte in the middle of every file of a copy of the bundle: does verify refuse each?"""
+    out = {}
+    with B.open_bundle(bundle) as b:
+        rels = [B.MANIFEST] + [e.path for e in b.manifest.files]
+    for rel in rels:
+        bad = scratch / "flipped"
+        shutil.rmtree(bad, ignore_errors=True)
+        shutil.copytree(bundle, bad)
+        data = bytearray((bad / rel).read_bytes())
+        data[len(data) // 2] ^= 0x01
+        (bad / rel).write_bytes(bytes(data))
+        try:
+            B.verify_bundle(bad)
+            out[rel] = "NOT caught"
+        except DbbError as e:
+            out[rel] = f"caught: {str(e).split(': ', 1)[-1][:80]}"
+    shutil.rmtree(scratch / "flipped", ignore_errors=True)
+    return out
+
+
+def bench_static(run: Path, out: Path, capture: Path | None, seed: int, res: int) -> dict:
+    from dbb_capture.datasets import load_dataset, load_rgba
+    from dbb_capture.octree import TreeRenderer
+    from dbb_capture.plenoctree import load_run
+
+    out.mkdir(parents=True, exist_ok=True)
+    t = time.perf_counter()
+    m = B.make_bundle(run, out / "bundle", overwrite=True)
+    bundle_s = time.perf_counter() - t
+    if capture is not None:
+        from dbb_capture.synth import load_ground_truth
+
+        model = load_ground_truth(capture)[2]
+    else:
+        from dbb_capture.board import BoardSpec
+        from dbb_capture.synth import make_object
+
+        model = make_object("static", BoardSpec(7, 5, 0.05, 0.0375, "DICT_5X5_100"), np.random.default_rng(seed))
+    # Voxelise both over the object's cube in the board frame.
+    c, r = m.center, m.radius
+    ax = (np.arange(res) + 0.5) / res * 2 - 1
+    P = c + r * np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    col = read_glb(out / "bundle" / m.proxy_mesh["file"])["proxy-colonly"]
+    v_board = transform_points(np.linalg.inv(m.T), np.asarray(col.vertices))
+    mine = mesh_occupancy(v_board, np.asarray(col.faces), P)
+    truth = true_occupancy(model, 0.0, P)
+    iou = float((mine & truth).sum() / max(1, (mine | truth).sum()))
+    # Renders from the bundle (dbb-export render, 8-bit PNG) vs the run's own tree renders, both vs truth.
+    ds = load_dataset(Path(load_run(run).meta["dataset"]))
+    test = ds.split("test") or ds.frames[::8]
+    cams = {"frames": [{"file_path": f"{f.name}.png", "transform_matrix": opengl_from_opencv(f.c2w).tolist(),
+                        **f.intr.nerfstudio_fields()} for f in test]}
+    (out / "cameras.json").write_text(json.dumps(cams))
+    t = time.perf_counter()
+    B.render_bundle(out / "bundle", out / "cameras.json", out / "renders", overwrite=True)
+    render_s = time.perf_counter() - t
+    ref = TreeRenderer(load_run(run).tree())
+    rows = []
+    for f in test:
+        gt = load_rgba(f)
+        gt_w = gt[..., :3] * gt[..., 3:] + 1 - gt[..., 3:]
+        got = B.read_rgba(out / "renders" / f"{f.name}.png").astype(np.float32) / 255
+        got_w = got[..., :3] * got[..., 3:] + 1 - got[..., 3:]
+        run_img = ref.render(f.c2w, f.intr, (1.0, 1.0, 1.0))
+        rows.append({"bundle": psnr(float(((got_w - gt_w) ** 2).mean())),
+                     "run": psnr(float(((run_img - gt_w) ** 2).mean())),
+                     "bundle_vs_run": psnr(float(((got_w - run_img) ** 2).mean()))})
+    t = time.perf_counter()
+    checks = B.verify_bundle(out / "bundle")
+    verify_s = time.perf_counter() - t
+    pm = m.proxy_mesh
+    return {"run": str(run), "bundle_seconds": round(bundle_s, 1), "proxy": pm,
+            "iou_board_frame": round(iou, 4), "iou_grid": f"{res}^3 over the object cube",
+            "renders": len(rows), "render_seconds": round(render_s, 2),
+            "psnr_white_bundle": round(float(np.mean([x["bundle"] for x in rows])), 3),
+            "psnr_white_run": round(float(np.mean([x["run"] for x in rows])), 3),
+            "psnr_bundle_vs_run_min": round(float(np.min([x["bundle_vs_run"] for x in rows])), 2),
+            "verify_seconds": round(verify_s, 1), "verify": checks,
+            "flipped_byte": flipped_byte_caught(out / "bundle", out)}
+
+
+def bench_dynamic(run: Path, out: Path) -> dict:
+    from dbb_capture.rssm import rollout
+
+    out.mkdir(parents=True, exist_ok=True)
+    t = time.perf_counter()
+    m = B.make_bundle(run, out / "bundle", overwrite=True)
+    bundle_s = time.perf_counter() - t
+    meta = json.loads((run / "run.json").read_text())
+    doc = json.loads((Path(meta["dataset"]) / "crops.json").read_text())
+    doc["frames"] = doc["frames"][:24]
+    (out / "cameras.json").write_text(json.dumps(doc))
+    t = time.perf_counter()
+    B.render_bundle(out / "bundle", out / "cameras.json", out / "renders", overwrite=True)
+    render_s = time.perf_counter() - t
+    # The run's own stepper, same first frame, viewpoints and seed.
+    stepper = torch.jit.load(str(run / meta["stepper"]["file"]))
+    with B.open_bundle(out / "bundle") as b:
+        r = B.DynamicRenderer(b)
+        views = B.read_cameras(out / "cameras.json")
+        vv = np.stack([r.view_of(v) for v in views])
+        first = B._rgba_tensor(r.first, r.size)
+        torch.manual_seed(B.SEED)
+        x = rollout(stepper, first, torch.from_numpy(np.concatenate([r.first_view[None], vv]))[None].float())[0]
+        ref = B.to_u8(x.permute(0, 2, 3, 1).numpy())
+        rows = []
+        for k, v in enumerate(views):
+            got = B.read_rgba(out / "renders" / v.name).astype(np.float32) / 255
+            want = r.warp(ref[k], v).astype(np.float32) / 255
+            rows.append(psnr(float(((got - want) ** 2).mean())))
+    t = time.perf_counter()
+    checks = B.verify_bundle(out / "bundle")
+    verify_s = time.perf_counter() - t
+    return {"run": str(run), "bundle_seconds": round(bundle_s, 1), "proxy": m.proxy_mesh,
+            "renders": len(rows), "render_seconds": round(render_s, 2),
+            "psnr_bundle_vs_run_min": round(min(rows), 2) if all(map(math.isfinite, rows)) else None,
+            "verify_seconds": round(verify_s, 1), "verify": checks,
+            "flipped_byte": flipped_byte_caught(out / "bundle", out)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("part", choices=["static", "dynamic"])
+    ap.add_argument("run", type=Path)
+    ap.add_argument("out", type=Path)
+    ap.add_argument("--capture", type=Path, default=None, help="synthetic capture whose ground truth is the shape")
+    ap.add_argument("--seed", type=int, default=0, help="seed of bench_plenoctree's synthetic object")
+    ap.add_argument("--res", type=int, default=128, help="voxels per axis for the IoU")
+    ap.add_argument("--json", type=Path, default=None)
+    a = ap.parse_args(argv)
+    res = (bench_static(a.run, a.out, a.capture, a.seed, a.res) if a.part == "static"
+           else bench_dynamic(a.run, a.out))
+    text = json.dumps(res, indent=2)
+    print(text)
+    if a.json:
+        a.json.write_text(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
