@@ -30,15 +30,22 @@ import shutil
 import tempfile
 import time
 import zipfile
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Iterator
 
 import cv2
 import numpy as np
 import torch
 
-from .cameras import Intrinsics, camera_rays, invert_rigid, look_at, opencv_from_opengl, pixel_grid
+from .cameras import (
+    Intrinsics,
+    camera_rays,
+    invert_rigid,
+    look_at,
+    opencv_from_opengl,
+    pixel_grid,
+)
 from .crops import crop_camera, up_from_cameras, viewpoint
 from .errors import DbbError
 from .outputs import atomic_dir, read_json, write_json
@@ -90,7 +97,7 @@ class Manifest:
         return {"format": d.pop("format"), "version": d.pop("version"), **d}
 
     @classmethod
-    def from_json(cls, d: object, where: str = MANIFEST) -> "Manifest":
+    def from_json(cls, d: object, where: str = MANIFEST) -> Manifest:
         """Validate the schema; a foreign or broken manifest gives one clear :class:`DbbError`."""
         if not isinstance(d, dict) or d.get("format") != FORMAT:
             got = d.get("format") if isinstance(d, dict) else type(d).__name__
@@ -242,7 +249,9 @@ def read_cameras(path: Path, T: np.ndarray | None = None) -> list[View]:
     ``T`` (bundle_from_board): when given, the poses are in bundle space and are taken to the
     board frame. Missing intrinsics, poses or names: one clear :class:`DbbError`.
     """
-    from .datasets import _intrinsics   # the dataset reader's nerfstudio intrinsics rules
+    from .datasets import (
+        _intrinsics,  # the dataset reader's nerfstudio intrinsics rules
+    )
 
     path = Path(path)
     meta = read_json(path, "cameras file")
@@ -409,10 +418,10 @@ def render_bundle(bundle: Path, cameras: Path, out: Path, first_frame: Path | No
                 first = read_rgba(first_frame) if first_frame is not None else None
                 crops = r.frames(vv, first, vv[0] if first is not None else None)
                 imgs = []
-                for c, v in zip(crops, views):
+                for c, v in zip(crops, views, strict=True):
                     imgs.append(r.warp(c, v))
                     prog.advance(task)
-            for img, v in zip(imgs, views):
+            for img, v in zip(imgs, views, strict=True):
                 if not cv2.imwrite(str(tmp / v.name), cv2.cvtColor(img, cv2.COLOR_RGBA2BGRA)):
                     raise DbbError(f"cannot write {tmp / v.name}")
     return [Path(out) / v.name for v in views]
@@ -474,7 +483,7 @@ def write_static_previews(folder: Path, tree_path: Path, T: np.ndarray, radius: 
     plan = preview_plan(3.0 * radius)
     r = StaticRenderer(tree_path)
     task = prog.add_task("previews", total=len(plan["turntable"]) + len(plan["sheet"]), info="static")
-    tick = lambda: prog.advance(task)  # noqa: E731
+    tick = lambda: prog.advance(task)
     turntable = r.render(_views(plan["turntable"], T, radius), tick)
     sheet = r.render(_views(plan["sheet"], T, radius), tick)
     folder.mkdir(parents=True, exist_ok=True)

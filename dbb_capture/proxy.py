@@ -46,8 +46,8 @@ class ProxyMesh:
         return _trimesh(self.vertices, self.faces).is_watertight
 
     def to_json(self, file: str) -> dict:
-        return {"file": file, "method": self.method, "note": self.note, "triangles": int(len(self.faces)),
-                "hull_triangles": int(len(self.hull_faces)), "watertight": bool(self.watertight),
+        return {"file": file, "method": self.method, "note": self.note, "triangles": len(self.faces),
+                "hull_triangles": len(self.hull_faces), "watertight": bool(self.watertight),
                 "volume_m3": float(abs(_trimesh(self.vertices, self.faces).volume)),
                 "space": "bundle (object-centred, metres, +Y up)"}
 
@@ -197,6 +197,19 @@ def _view_spread_deg(dirs: np.ndarray) -> float:
     return float(np.degrees(np.arccos(c.min())))
 
 
+def _project(P: np.ndarray, c2w: np.ndarray, intr) -> np.ndarray:
+    """Pixels (N, 2) of board points (N, 3): plain pinhole maths for undistorted crop cameras
+    (cv2.projectPoints is ~10x slower on a voxel grid), the lens model otherwise."""
+    from .cameras import invert_rigid, project_points
+
+    if intr.distorted:
+        return project_points(P, c2w, intr)
+    w2c = invert_rigid(c2w)
+    q = P @ w2c[:3, :3].T + w2c[:3, 3]
+    z = np.where(q[:, 2] > 1e-9, q[:, 2], np.nan)      # behind the camera: NaN, never inside
+    return np.stack([intr.fx * q[:, 0] / z + intr.cx, intr.fy * q[:, 1] / z + intr.cy], -1)
+
+
 def dynamic_proxy(crops_json: Path, center: np.ndarray, radius: float, T: np.ndarray, res: int = 64,
                   agree: float = 0.9, max_views: int = 80, min_spread_deg: float = 30.0,
                   max_triangles: int = MAX_TRIANGLES) -> ProxyMesh:
@@ -206,7 +219,6 @@ def dynamic_proxy(crops_json: Path, center: np.ndarray, radius: float, T: np.nda
     matte (alpha > 0.5) in at least ``agree`` of the views that see it; a moving object thus
     keeps what it occupies most of the time.
     """
-    from .cameras import project_points
     from .datasets import load_dataset, load_rgba
 
     center = np.asarray(center, float)
@@ -218,8 +230,9 @@ def dynamic_proxy(crops_json: Path, center: np.ndarray, radius: float, T: np.nda
     ax = center[None] + ((np.arange(res) + 0.5) / res * 2 - 1)[:, None] * radius
     P = np.stack(np.meshgrid(ax[:, 0], ax[:, 1], ax[:, 2], indexing="ij"), -1).reshape(-1, 3)
     inside = np.linalg.norm(P - center, axis=1) <= radius
-    votes = np.zeros(len(P), np.int32)
-    seen = np.zeros(len(P), np.int32)
+    Pin = P[inside]                     # only voxels inside the object sphere can be kept
+    votes = np.zeros(len(Pin), np.int32)
+    seen = np.zeros(len(Pin), np.int32)
     areas, dirs = [], []
     for fr in frames:
         alpha = load_rgba(fr)[..., 3]
@@ -227,7 +240,7 @@ def dynamic_proxy(crops_json: Path, center: np.ndarray, radius: float, T: np.nda
         areas.append(float((alpha > 0.5).sum()) / (fr.intr.fx * fr.intr.fy))   # steradians-ish
         eye = fr.c2w[:3, 3]
         dirs.append((eye - center) / np.linalg.norm(eye - center))
-        uv = np.round(project_points(P, fr.c2w, fr.intr)).astype(np.int64)
+        uv = np.round(np.nan_to_num(_project(Pin, fr.c2w, fr.intr), nan=-1.0)).astype(np.int64)
         ok = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
         seen += ok
         votes[ok] += alpha[uv[ok, 1], uv[ok, 0]] > 0.5
@@ -240,7 +253,8 @@ def dynamic_proxy(crops_json: Path, center: np.ndarray, radius: float, T: np.nda
         why = f"only {len(frames)} views"
     elif spread < min_spread_deg:
         why = f"views span only {spread:.0f} degrees (need {min_spread_deg:.0f})"
-    keep = inside & (seen >= 3) & (votes >= agree * np.maximum(seen, 1))
+    keep = np.zeros(len(P), bool)
+    keep[inside] = (seen >= 3) & (votes >= agree * np.maximum(seen, 1))
     if why is None and keep.sum() < 8:
         why = "carving left nothing"
     if why is None:
@@ -276,7 +290,7 @@ def read_glb(path: Path) -> dict:
 
     try:
         scene = trimesh.load(Path(path), file_type="glb", force="scene", process=False)
-    except Exception as e:   # trimesh raises many kinds on a corrupt file
+    except Exception as e:  # noqa: BLE001 - trimesh raises many kinds on a corrupt file
         raise DbbError(f"cannot read the proxy mesh {path}: {e}") from None
     out = {}
     for node in scene.graph.nodes_geometry:

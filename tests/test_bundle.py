@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
+from dbb_capture.cli.export import main
 
 from dbb_capture import bundle as B
-from dbb_capture.cli.export import main
 from dbb_capture.errors import DbbError
 
 torch.set_num_threads(1)

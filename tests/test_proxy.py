@@ -7,8 +7,17 @@ import math
 import numpy as np
 import pytest
 
-from dbb_capture.proxy import (MAX_TRIANGLES, bundle_from_board, density_level, occupancy_mesh, read_glb,
-                               sphere_proxy, static_proxy, transform_points, write_glb)
+from dbb_capture.proxy import (
+    MAX_TRIANGLES,
+    bundle_from_board,
+    density_level,
+    occupancy_mesh,
+    read_glb,
+    sphere_proxy,
+    static_proxy,
+    transform_points,
+    write_glb,
+)
 
 
 def _ellipsoid_grid(G=64, radii=(0.06, 0.04, 0.08), center=(0.3, 0.1, -0.08)):
