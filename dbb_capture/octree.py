@@ -260,43 +260,124 @@ def leaf_cells(tree: PlenOctree) -> tuple[np.ndarray, np.ndarray]:
 
 
 class TreeRenderer:
-    """Vectorized RGBA ray casting through a :class:`PlenOctree` (PyTorch, CPU or CUDA).
+    """RGBA ray casting through a :class:`PlenOctree`, on the CPU or with PyTorch on any device.
 
     The tree's dense leaves are indexed through two levels (a brick grid of 8^3-leaf bricks,
-    then the brick), which answers "which leaf holds this point" in two gathers. A coarse
-    pass finds, per ray, the stretch that crosses occupied bricks; the fine pass samples it
-    at half a leaf in chunks, composites front to back (``alpha = 1 - exp(-sigma * step)``) and
-    drops rays whose transmittance is under ``t_min`` (early termination) after each chunk.
+    then the brick), which answers "which leaf holds this point" in two lookups.
+
+    ``backend="numba"`` (the default on the CPU, :mod:`.octree_cpu`) walks every ray exactly
+    cell by cell, integrates each leaf over the length the ray spends in it, skips empty
+    32^3 blocks and 8^3 bricks, and stops a ray once its transmittance is under ``t_min``.
+    ``backend="torch"`` (the default on CUDA) is vectorized PyTorch: a coarse pass finds, per
+    ray, the stretch that crosses occupied bricks; the fine pass samples it every ``step``
+    leaves in chunks of ``chunk_samples``, composites front to back
+    (``alpha = 1 - exp(-sigma * step)``) and drops rays under ``t_min`` after each chunk.
     """
 
     def __init__(self, tree: PlenOctree, device: torch.device | str = "cpu", t_min: float = 1e-3,
-                 chunk_samples: int = 48):
+                 chunk_samples: int = 48, backend: str = "auto", step: float = 0.5):
         if tree.colour_activation not in ("sigmoid", "relu_shift"):
             raise DbbError(f"unknown colour activation {tree.colour_activation!r}")
         self.tree = tree
         self.device = torch.device(device)
+        if backend == "auto":
+            backend = "numba" if self.device.type == "cpu" else "torch"
+        if backend not in ("numba", "torch") or (backend == "numba" and self.device.type != "cpu"):
+            raise DbbError(f"renderer backend {backend!r} is not available on {self.device}")
+        self.backend = backend
         self.t_min = t_min
         self.K = chunk_samples
+        self.step = float(step)
         self.L = 1 << (tree.depth_limit + 1)
+        self.degree = tree.sh_degree
+        self.n_basis = (self.degree + 1) ** 2
         cells, rows = leaf_cells(tree)
-        uniq, inv = np.unique(rows, return_inverse=True)
-        self.data = torch.from_numpy(tree.data.reshape(-1, tree.data_dim)[uniq].astype(np.float32)).to(self.device)
         nb = max(1, self.L // BRICK)
         bc = cells // BRICK
         bkey = (bc[:, 0] * nb + bc[:, 1]) * nb + bc[:, 2]
         ub, binv = np.unique(bkey, return_inverse=True)
         grid = np.full(nb ** 3, -1, np.int32)
         grid[ub] = np.arange(len(ub), dtype=np.int32)
+        self.nb = nb
+        self._grid = grid
+        self._cam_cache: tuple = (None, None)
+        if backend == "numba":
+            self._np = self._cpu_tables(cells, rows, ub, binv)
+            self.inv = tree.invradius.astype(np.float64)
+            self.offset = tree.offset.astype(np.float64)
+            return
+        uniq, inv = np.unique(rows, return_inverse=True)
         table = np.full((max(1, len(ub)), BRICK ** 3), -1, np.int32)
         lc = cells % BRICK
         table[binv, (lc[:, 0] * BRICK + lc[:, 1]) * BRICK + lc[:, 2]] = inv.astype(np.int32)
-        self.nb = nb
+        self.data = torch.from_numpy(tree.data.reshape(-1, tree.data_dim)[uniq].astype(np.float32)).to(self.device)
         self.bricks = torch.from_numpy(grid).to(self.device)
         self.table = torch.from_numpy(table.reshape(-1)).to(self.device)
         self.inv = torch.from_numpy(tree.invradius.astype(np.float32)).to(self.device)
         self.offset = torch.from_numpy(tree.offset.astype(np.float32)).to(self.device)
-        self.degree = tree.sh_degree
-        self.n_basis = (self.degree + 1) ** 2
+
+    def _cpu_tables(self, cells: np.ndarray, rows: np.ndarray, ub: np.ndarray, binv: np.ndarray) -> dict:
+        """Arrays of the numba kernel (see :func:`.octree_cpu.trace_rays`) for fine cells (K, 3)
+        reading data ``rows`` (K,) and lying in bricks ``binv`` (K,) of the ``ub`` occupied ones.
+
+        Colour rows are stored brick by brick, so the leaves a ray bundle meets share cache
+        lines; density sits in a dense per-brick table (0 = empty), read without indirection.
+        """
+        from .octree_cpu import BLOCK_SHIFT
+
+        g = self.tree.data.reshape(-1, self.tree.data_dim)
+        nk = max(1, self.L >> BLOCK_SHIFT)
+        blocks = np.zeros(nk ** 3, np.uint8)
+        kc = cells >> BLOCK_SHIFT
+        blocks[(kc[:, 0] * nk + kc[:, 1]) * nk + kc[:, 2]] = 1
+        lc = cells % BRICK
+        slot = binv.astype(np.int64) * BRICK ** 3 + (lc[:, 0] * BRICK + lc[:, 1]) * BRICK + lc[:, 2]
+        order = np.argsort(slot, kind="stable")
+        n_slots = max(1, len(ub)) * BRICK ** 3
+        table = np.full(n_slots, -1, np.int32)
+        table[slot[order]] = np.arange(len(order), dtype=np.int32)
+        dens = np.zeros(n_slots, np.float32)
+        dens[slot] = g[rows, -1].astype(np.float32)
+        coef = g[rows[order], :-1].astype(np.float32) if len(rows) else np.zeros((1, g.shape[1] - 1), np.float32)
+        return {"L": self.L, "lo": (cells.min(0) if len(cells) else np.zeros(3)).astype(np.float64),
+                "hi": (cells.max(0) + 1 if len(cells) else np.zeros(3)).astype(np.float64),
+                "blocks": blocks, "nblk": nk, "bricks": self._grid, "nbrk": self.nb, "table": table,
+                "dens": dens, "coef": np.ascontiguousarray(coef), "degree": self.degree,
+                "sigmoid": self.tree.colour_activation == "sigmoid"}
+
+    def _trace_np(self, origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Premultiplied RGB (N, 3) and alpha (N,) with the numba kernel; ``dirs`` (N, 3) unit
+        directions turned to world by ``rot`` (3, 3), ``origins`` (1 or N, 3) world."""
+        import numba
+
+        from .octree_cpu import trace_rays
+
+        n = dirs.shape[0]
+        rgb = np.empty((n, 3), np.float32)
+        alpha = np.empty(n, np.float32)
+        g = self._np
+        trace_rays(np.ascontiguousarray(origins, np.float64), np.ascontiguousarray(dirs, np.float32),
+                   np.ascontiguousarray(rot, np.float64), self.inv, self.offset, g["L"], g["lo"], g["hi"],
+                   g["blocks"], g["nblk"], g["bricks"], g["nbrk"], g["table"], g["dens"], g["coef"],
+                   g["degree"], g["sigmoid"], float(self.t_min), 1e-4, numba.get_num_threads(), rgb, alpha)
+        return rgb, alpha
+
+    def _camera_dirs(self, intr) -> tuple[np.ndarray, np.ndarray]:
+        """Unit camera-frame ray directions (H*W, 3) float32 of ``intr`` in 8x8-pixel tile
+        order, and each one's pixel (row-major index), cached per intrinsics (undistorting
+        every pixel is the dearest part of a small frame). Neighbouring rays meet the same
+        leaves, so tiles keep the leaf data they read in cache."""
+        from .cameras import camera_rays, pixel_grid
+
+        if self._cam_cache[0] != intr:
+            H, W, s = intr.height, intr.width, 8
+            d = camera_rays(intr, pixel_grid(W, H)).reshape(-1, 3)
+            idx = np.full((-(-H // s) * s, -(-W // s) * s), -1, np.int64)
+            idx[:H, :W] = np.arange(H * W).reshape(H, W)
+            order = idx.reshape(idx.shape[0] // s, s, idx.shape[1] // s, s).transpose(0, 2, 1, 3).reshape(-1)
+            order = order[order >= 0]
+            self._cam_cache = (intr, (np.ascontiguousarray(d[order], np.float32), order))
+        return self._cam_cache[1]
 
     def colour(self, coef: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
         """RGB (M, 3) from SH coefficients (M, 3*B) seen along world directions (M, 3)."""
@@ -321,6 +402,14 @@ class TreeRenderer:
     @torch.no_grad()
     def render_rays(self, origins: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Premultiplied RGB (B, 3) and alpha (B,) of world rays (B, 3) with unit directions."""
+        if self.backend == "numba":
+            o = origins.detach().cpu().numpy() if torch.is_tensor(origins) else np.asarray(origins)
+            d = dirs.detach().cpu().numpy() if torch.is_tensor(dirs) else np.asarray(dirs)
+            rgb, a = self._trace_np(o.reshape(-1, 3), d.reshape(-1, 3), np.eye(3))
+            return torch.from_numpy(rgb), torch.from_numpy(a)
+        return self._render_rays_torch(origins, dirs)
+
+    def _render_rays_torch(self, origins: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         dev = self.device
         L = float(self.L)
         dw = dirs.to(dev).float()
@@ -355,7 +444,7 @@ class TreeRenderer:
         K = self.K
         kk = torch.arange(K, device=dev, dtype=torch.float32)[None] + 0.5
         while ids.numel():
-            step = 0.5 / speed[ids]                                       # world units
+            step = self.step / speed[ids]                                       # world units
             ts = t[:, None] + kk * step[:, None]
             p = P[ids, None] + ts[..., None] * Dv[ids, None]
             row = self._leaf(p)
@@ -387,6 +476,17 @@ class TreeRenderer:
 
         ``c2w`` is OpenCV camera-to-world (4, 4); ``intr`` an :class:`~.cameras.Intrinsics`.
         """
+        if self.backend == "numba":
+            c2w = np.asarray(c2w, np.float64)
+            dirs, pixel = self._camera_dirs(intr)
+            rgb, a = self._trace_np(c2w[None, :3, 3], dirs, c2w[:3, :3])
+            if background is None:
+                out = np.concatenate([np.clip(rgb / np.maximum(a, 1e-6)[:, None], 0, 1), a[:, None]], -1)
+            else:
+                out = np.clip(rgb + (1 - a)[:, None] * np.asarray(background, np.float32), 0, 1)
+            img = np.empty_like(out)
+            img[pixel] = out
+            return img.reshape(intr.height, intr.width, -1)
         from .datasets import frame_rays
 
         o, d = frame_rays(intr, c2w)
