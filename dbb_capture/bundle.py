@@ -565,7 +565,7 @@ def _created(run: Path, meta: dict) -> dict:
     return {"tool": "dbb-export bundle", "tool_version": v,
             "utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
             "run": str(Path(run).resolve()), "run_format": meta.get("format"),
-            "training": meta.get("training", {}).get("steps"), "training_seconds": meta.get("training", {}).get("seconds")}
+            "training_steps": meta.get("training", {}).get("steps"), "training_seconds": meta.get("training", {}).get("seconds")}
 
 
 def _run_kind(run: Path) -> tuple[str, dict]:

@@ -244,3 +244,17 @@ def test_dynamic_proxy_falls_back_to_a_sphere_and_says_why(dynamic_run, tmp_path
     p = dynamic_proxy(dynamic_run / "ds/two.json", c, r, bundle_from_board(c, np.asarray(doc["up"])))
     assert p.method == "sphere" and "only 2 views" in p.note and p.watertight
     assert 0.2 * r < np.abs(p.vertices).max() <= r * 1.01
+
+
+def test_preview_orbit_agrees_with_the_viewpoint_convention():
+    from dbb_capture.crops import viewpoint
+    from dbb_capture.proxy import bundle_from_board
+
+    c = np.array([0.4, 0.1, -0.09])
+    for up in (np.array([0, 0, -1.0]), np.array([0, 0, 1.0])):
+        T = bundle_from_board(c, up)
+        for a, e in ((0.0, 20.0), (75.0, 45.0), (-130.0, 10.0)):
+            v = B.orbit_view("x", T, 0.1, a, e, 0.5)
+            p = viewpoint(v.c2w[:3, 3], c, up)
+            assert (p.azimuth_deg, p.elevation_deg, p.distance_m) == pytest.approx((a, e, 0.5), abs=1e-6)
+            assert np.allclose(v.c2w[:3, 2], (c - v.c2w[:3, 3]) / 0.5)     # looks at the centre
