@@ -119,6 +119,7 @@ def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.n
                 cg = 0.0
                 cb = 0.0
                 basis_ready = False
+                w_sum = 0.0
                 done = False
                 while t < t_end and not done:
                     tt = t + eps
@@ -170,6 +171,7 @@ def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.n
                                 cr += w * v0
                                 cg += w * v1
                                 cb += w * v2
+                                w_sum += w
                             T *= 1.0 - a
                             if T < t_min:
                                 done = True
@@ -192,7 +194,9 @@ def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.n
                             mz += sz
                             if lz < 0 or lz > 7:
                                 break
-                rgb[r, 0] = cr
-                rgb[r, 1] = cg
-                rgb[r, 2] = cb
+                # The weight of skipped samples goes to the evaluated ones in proportion.
+                scale = (1.0 - T) / w_sum if w_sum > 0 else 0.0
+                rgb[r, 0] = cr * scale
+                rgb[r, 1] = cg * scale
+                rgb[r, 2] = cb * scale
                 alpha[r] = 1.0 - T

@@ -1,0 +1,116 @@
+"""Render speed of the PlenOctree renderer (issue 4's rendering bars). Figures go to
+docs/benchmarks.md, section "PlenOctree (issue 4)". Run under ``flock /tmp/dbb-bench.lock``.
+
+    python bench/bench_render.py run RUN [RUN ...]   # trees of dbb-train plenoctree run folders
+    python bench/bench_render.py shell               # a synthetic opaque-shell tree (no haze)
+
+For a run: straight-RGBA frames/s at 256x256 and 800x800 from the first held-out camera of
+its dataset (every 8th view), the tree's size, and with ``--psnr`` the held-out PSNR on white
+(the quality a bake setting costs or buys). ``--torch`` also times the PyTorch path at 256.
+The shell tree is a sphere of opaque leaves at depth 7 (256^3), what a well-converged object
+looks like to the renderer, seen from 2.5 radii (of the tree cube) with a 40 degree field of
+view, so that it covers about as much of the frame as lego does.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numba
+import numpy as np
+
+from dbb_capture.cameras import Intrinsics, look_at
+from dbb_capture.datasets import load_dataset, scaled_intrinsics
+from dbb_capture.octree import PlenOctree, TreeRenderer, build_tree
+from dbb_capture.plenoctree import RunConfig, evaluate_views, load_run, mean_of, split_frames
+
+
+def fps(renderer: TreeRenderer, c2w: np.ndarray, intr: Intrinsics, repeats: int) -> float:
+    """Frames per second rendering straight RGBA with ``intr`` (after one warm-up frame)."""
+    renderer.render(c2w, intr)
+    t = time.perf_counter()
+    for _ in range(repeats):
+        renderer.render(c2w, intr)
+    return repeats / (time.perf_counter() - t)
+
+
+def speeds(r: TreeRenderer, c2w: np.ndarray, base: Intrinsics, repeats: int) -> dict:
+    return {f"fps_{s}": fps(r, c2w, scaled_intrinsics(base, base.width / s), repeats if s <= 256 else
+                             max(2, repeats // 4)) for s in (256, 800)}
+
+
+def bench_run(run_dir: Path, repeats: int, with_psnr: bool, with_torch: bool) -> dict:
+    run = load_run(run_dir)
+    ds = load_dataset(Path(run.meta["dataset"]))
+    _, test = split_frames(ds, RunConfig(holdout_every=8))
+    tree = run.tree()
+    t = time.perf_counter()
+    r = TreeRenderer(tree)
+    out = {"run": str(run_dir), "tree_mb": run.tree_path.stat().st_size / 1e6,
+           "leaves_with_data": tree.n_leaves_with_data(), "depth": tree.depth_limit,
+           "renderer_setup_s": time.perf_counter() - t, "threads": numba.get_num_threads()}
+    out.update(speeds(r, test[0].c2w, test[0].intr, repeats))
+    if with_torch:
+        rt = TreeRenderer(tree, backend="torch")
+        out["torch_fps_256"] = fps(rt, test[0].c2w, scaled_intrinsics(test[0].intr, test[0].intr.width / 256), 1)
+    if with_psnr:
+        rows = evaluate_views(r, test, run.meta["training"]["downscale"])
+        out.update(heldout_views=len(test), psnr_white=mean_of(rows, "psnr_white"),
+                   ssim_white=mean_of(rows, "ssim_white"))
+    return out
+
+
+def shell_tree(depth: int = 7, radius: float = 0.6, seed: int = 0) -> PlenOctree:
+    """Opaque spherical shell (two leaves thick, alpha 0.95 per leaf) of random SH9 colour."""
+    L = 1 << (depth + 1)
+    g = (np.arange(L) + 0.5) / L * 2 - 1
+    x, y, z = np.meshgrid(g, g, g, indexing="ij")
+    dist = np.sqrt(x * x + y * y + z * z)
+    cells = np.argwhere(np.abs(dist - radius) < 2.0 / L)
+    rng = np.random.default_rng(seed)
+    coef = rng.normal(0, 0.5, (len(cells), 27))
+    sigma = np.full((len(cells), 1), -math.log(0.05) / (2.0 / L))      # per world unit, radius 1
+    data, child, pd = build_tree(cells, np.concatenate([coef, sigma], 1).astype(np.float32), depth)
+    inv = np.full(3, 0.5, np.float32)
+    return PlenOctree(data.astype(np.float16), child, pd, inv, np.full(3, 0.5, np.float32), depth, "SH9")
+
+
+def bench_shell(repeats: int) -> dict:
+    tree = shell_tree()
+    r = TreeRenderer(tree)
+    f = 400 / math.tan(math.radians(20))
+    base = Intrinsics(800, 800, f, f, 399.5, 399.5)
+    c2w = look_at(np.array([0.0, -2.4, -0.7]), np.zeros(3), np.array([0.0, 0.0, -1.0]))   # 2.5 radii
+    out = {"tree": "opaque shell, depth 7", "leaves_with_data": tree.n_leaves_with_data(),
+           "threads": numba.get_num_threads()}
+    out.update(speeds(r, c2w, base, repeats))
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("part", choices=["run", "shell"])
+    ap.add_argument("runs", type=Path, nargs="*", help="run folders of dbb-train plenoctree")
+    ap.add_argument("--repeats", type=int, default=8)
+    ap.add_argument("--psnr", action="store_true", help="also held-out PSNR on white")
+    ap.add_argument("--torch", action="store_true", help="also time the PyTorch path at 256")
+    ap.add_argument("--json", type=Path, default=None, help="also write the figures here")
+    a = ap.parse_args(argv)
+    if a.part == "run":
+        res = [bench_run(p, a.repeats, a.psnr, a.torch) for p in a.runs]
+    else:
+        res = [bench_shell(a.repeats)]
+    text = json.dumps(res, indent=2)
+    print(text)
+    if a.json:
+        a.json.write_text(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
