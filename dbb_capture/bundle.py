@@ -468,10 +468,11 @@ def write_png(path: Path, rgba: np.ndarray) -> None:
         raise DbbError(f"cannot write {path}")
 
 
-def preview_plan(dist: float) -> dict:
-    """Viewpoints of the previews: turntable at 20 degrees, sheet rows at SHEET_ELEVATIONS."""
-    tt = [[360.0 * i / TURNTABLE_FRAMES, 20.0, dist] for i in range(TURNTABLE_FRAMES)]
-    sheet = [[360.0 * k / SHEET_AZIMUTHS, e, dist] for e in SHEET_ELEVATIONS for k in range(SHEET_AZIMUTHS)]
+def preview_plan(dist: float, az0: float = 0.0) -> dict:
+    """Viewpoints of the previews: turntable at 20 degrees, sheet rows at SHEET_ELEVATIONS;
+    both start at azimuth ``az0`` (the side the capture saw best)."""
+    tt = [[az0 + 360.0 * i / TURNTABLE_FRAMES, 20.0, dist] for i in range(TURNTABLE_FRAMES)]
+    sheet = [[az0 + 360.0 * k / SHEET_AZIMUTHS, e, dist] for e in SHEET_ELEVATIONS for k in range(SHEET_AZIMUTHS)]
     return {"turntable": tt, "sheet": sheet}
 
 
@@ -479,8 +480,9 @@ def _views(plan: list[list[float]], T: np.ndarray, radius: float) -> list[View]:
     return [orbit_view(f"{i:03d}", T, radius, a, e, d) for i, (a, e, d) in enumerate(plan)]
 
 
-def write_static_previews(folder: Path, tree_path: Path, T: np.ndarray, radius: float, prog) -> dict:
-    plan = preview_plan(3.0 * radius)
+def write_static_previews(folder: Path, tree_path: Path, T: np.ndarray, radius: float, az0: float,
+                          prog) -> dict:
+    plan = preview_plan(3.0 * radius, az0)
     r = StaticRenderer(tree_path)
     task = prog.add_task("previews", total=len(plan["turntable"]) + len(plan["sheet"]), info="static")
     tick = lambda: prog.advance(task)
@@ -504,7 +506,7 @@ def _preview_json(plan: dict, what: str) -> dict:
 def write_dynamic_previews(folder: Path, r: DynamicRenderer, prog) -> dict:
     """Turntable, elevation sheet (one step from the context at each view) and a rollout strip."""
     a0, e0, d0 = (float(x) for x in r.first_view)
-    plan = preview_plan(d0)
+    plan = preview_plan(d0, a0)
     plan["turntable"] = [[a0 + a, e0, d0] for a, _, _ in plan["turntable"]]
     task = prog.add_task("previews", total=3, info="dynamic")
     turntable = list(r.frames(np.array(plan["turntable"])))
@@ -532,20 +534,29 @@ def write_dynamic_previews(folder: Path, r: DynamicRenderer, prog) -> dict:
 
 
 # --------------------------------------------------------------------------- building
-def _dataset_up(dataset: Path) -> list[float]:
-    """The board normal on the cameras' side: recorded "up" in the dataset, else from its poses."""
+def _dataset_cameras(dataset: Path) -> tuple[list[float], np.ndarray]:
+    """Up (3,) and camera poses (N, 4, 4, OpenCV, board frame) of a dataset, without its images.
+
+    Up is the board normal on the cameras' side: the dataset's recorded "up", else from its poses.
+    """
     from .datasets import find_dataset_file
 
     src = find_dataset_file(dataset)
     meta = read_json(src, "dataset")
-    if isinstance(meta.get("up"), list) and len(meta["up"]) == 3:
-        return [float(v) for v in meta["up"]]
     try:
         c2w = np.stack([opencv_from_opengl(np.asarray(f["transform_matrix"], float)[:4])
                         for f in meta["frames"]])
     except (KeyError, TypeError, ValueError):
         raise DbbError(f"{src}: cannot read the camera poses to tell which way is up") from None
-    return [float(v) for v in up_from_cameras(c2w)]
+    if isinstance(meta.get("up"), list) and len(meta["up"]) == 3:
+        return [float(v) for v in meta["up"]], c2w
+    return [float(v) for v in up_from_cameras(c2w)], c2w
+
+
+def mean_azimuth(c2w: np.ndarray, center: np.ndarray, up: np.ndarray) -> float:
+    """Circular mean of the cameras' azimuths about ``up`` (degrees): the side best seen."""
+    a = np.radians([viewpoint(T[:3, 3], center, up).azimuth_deg for T in c2w])
+    return float(np.degrees(np.arctan2(np.sin(a).mean(), np.cos(a).mean()))) if len(a) else 0.0
 
 
 def _run_dataset(meta: dict, run: Path, dataset: Path | None) -> Path:
@@ -592,7 +603,7 @@ def build_static(run: Path, meta: dict, tmp: Path, dataset: Path | None, prog) -
     _need(run, meta["tree"]["file"], meta["density_grid"]["file"])
     o = meta["object"]
     center, radius = np.asarray(o["center"], float), float(o["radius"])
-    up = _dataset_up(_run_dataset(meta, run, dataset))
+    up, cams = _dataset_cameras(_run_dataset(meta, run, dataset))
     T = bundle_from_board(center, up)
     (tmp / "model").mkdir()
     shutil.copyfile(Path(run) / meta["tree"]["file"], tmp / "model" / "plenoctree.npz")
@@ -600,7 +611,8 @@ def build_static(run: Path, meta: dict, tmp: Path, dataset: Path | None, prog) -
     proxy = static_proxy(Path(run) / meta["density_grid"]["file"], T)
     write_glb(tmp / "proxy.glb", proxy)
     prog.advance(task)
-    previews = write_static_previews(tmp / "previews", tmp / "model" / "plenoctree.npz", T, radius, prog)
+    previews = write_static_previews(tmp / "previews", tmp / "model" / "plenoctree.npz", T, radius,
+                                     round(mean_azimuth(cams, center, np.asarray(up)), 1), prog)
     tree = meta["tree"]
     return Manifest(
         kind="static",
@@ -626,7 +638,7 @@ def build_dynamic(run: Path, meta: dict, tmp: Path, dataset: Path | None, prog) 
     if "center" not in o or "radius" not in o:
         raise DbbError(f"{run}/run.json has no object sphere")
     center, radius = np.asarray(o["center"], float), float(o["radius"])
-    up = meta.get("up") or _dataset_up(ds_file)
+    up = meta.get("up") or _dataset_cameras(ds_file)[0]
     T = bundle_from_board(center, up)
     (tmp / "model").mkdir()
     shutil.copyfile(Path(run) / meta["stepper"]["file"], tmp / "model" / "stepper.ts")
