@@ -312,6 +312,8 @@ class TreeRenderer:
         self.nb = nb
         self._grid = grid
         self._cam_cache: tuple = (None, None)
+        self._colour_cache: tuple | None = None     # per-thread leaf colours of the last frame
+        self._frame = 0
         if backend == "numba":
             self._np = self._cpu_tables(cells, rows, ub, binv)
             self.inv = tree.invradius.astype(np.float64)
@@ -349,28 +351,47 @@ class TreeRenderer:
         table[slot[order]] = np.arange(len(order), dtype=np.int32)
         dens = np.zeros(n_slots, np.float32)
         dens[slot] = g[rows, -1].astype(np.float32)
-        coef = g[rows[order], :-1].astype(np.float32) if len(rows) else np.zeros((1, g.shape[1] - 1), np.float32)
+        # float16 bits as stored, each row padded to whole 64-byte lines and line aligned.
+        width = -(-(g.shape[1] - 1) // 32) * 32
+        k = max(1, len(rows))
+        buf = np.zeros(k * width + 32, np.uint16)
+        start = (-buf.ctypes.data % 64) // 2
+        coef = buf[start:start + k * width].reshape(k, width)
+        if len(rows):
+            coef[:, :g.shape[1] - 1] = g[rows[order], :-1].astype(np.float16).view(np.uint16)
         return {"L": self.L, "lo": (cells.min(0) if len(cells) else np.zeros(3)).astype(np.float64),
                 "hi": (cells.max(0) + 1 if len(cells) else np.zeros(3)).astype(np.float64),
                 "blocks": blocks, "nblk": nk, "bricks": self._grid, "nbrk": self.nb, "table": table,
-                "dens": dens, "coef": np.ascontiguousarray(coef), "degree": self.degree,
+                "dens": dens, "coef": coef, "degree": self.degree,
                 "sigmoid": self.tree.colour_activation == "sigmoid"}
 
     def _trace_np(self, origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Premultiplied RGB (N, 3) and alpha (N,) with the numba kernel; ``dirs`` (N, 3) unit
-        directions turned to world by ``rot`` (3, 3), ``origins`` (1 or N, 3) world."""
+        directions turned to world by ``rot`` (3, 3), ``origins`` (1 or N, 3) world. With one
+        origin (a camera), leaf colours are cached per frame."""
         import numba
 
-        from .octree_cpu import trace_rays
+        from .octree_cpu import HALF_SCALE, trace_rays
 
         n = dirs.shape[0]
         rgb = np.empty((n, 3), np.float32)
         alpha = np.empty(n, np.float32)
         g = self._np
+        n_thr = numba.get_num_threads()
+        frame = 0
+        cache, stamp = np.zeros((1, 1, 3), np.float32), np.zeros((1, 1), np.int32)
+        if origins.shape[0] == 1:
+            k = g["coef"].shape[0]
+            if self._colour_cache is None or self._colour_cache[1].shape[0] < n_thr:
+                self._colour_cache = (np.zeros((n_thr, k, 3), np.float32), np.zeros((n_thr, k), np.int32))
+                self._frame = 0
+            self._frame = self._frame % (2 ** 31 - 2) + 1
+            frame = self._frame
+            cache, stamp = self._colour_cache
         trace_rays(np.ascontiguousarray(origins, np.float64), np.ascontiguousarray(dirs, np.float32),
                    np.ascontiguousarray(rot, np.float64), self.inv, self.offset, g["L"], g["lo"], g["hi"],
-                   g["blocks"], g["nblk"], g["bricks"], g["nbrk"], g["table"], g["dens"], g["coef"],
-                   g["degree"], g["sigmoid"], float(self.t_min), self._w_eps, numba.get_num_threads(), rgb, alpha)
+                   g["blocks"], g["nblk"], g["bricks"], g["nbrk"], g["table"], g["dens"], g["coef"], HALF_SCALE,
+                   g["degree"], g["sigmoid"], float(self.t_min), self._w_eps, n_thr, frame, cache, stamp, rgb, alpha)
         return rgb, alpha
 
     def _camera_dirs(self, intr) -> tuple[np.ndarray, np.ndarray]:

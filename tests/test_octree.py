@@ -196,3 +196,23 @@ def test_cpu_renderer_matches_the_torch_renderer_on_a_trained_tree(baked):
     assert fast.shape == ref.shape == (24, 24, 4)
     assert psnr(float(((fast[..., :3] * fast[..., 3:] - ref[..., :3] * ref[..., 3:]) ** 2).mean())) > 40
     assert psnr(float(((fast[..., 3] - ref[..., 3]) ** 2).mean())) > 40
+
+
+def test_float16_decoding_is_exact():
+    from dbb_capture.octree_cpu import HALF_SCALE, _half
+
+    bits = np.arange(1 << 16, dtype=np.uint16)
+    want = bits.view(np.float16).astype(np.float64)
+    finite = np.isfinite(want)
+    got = np.array([_half(int(u), HALF_SCALE) for u in bits[finite][::7]])
+    np.testing.assert_array_equal(got, want[finite][::7])
+
+
+def test_colour_cache_does_not_leak_between_frames(baked):
+    """Leaf colours are cached per frame: a frame after another camera's equals a fresh one."""
+    frames, vol, state, tree, _ = baked
+    r = TreeRenderer(tree)
+    r.render(frames[0].c2w, frames[0].intr)
+    again = r.render(frames[6].c2w, frames[6].intr)
+    fresh = TreeRenderer(tree).render(frames[6].c2w, frames[6].intr)
+    np.testing.assert_array_equal(again, fresh)
