@@ -169,28 +169,55 @@ def calibrate(input_path: Path, board_path: Path | None, output: Path, fps: floa
               help="Drop frames sharper than less than this fraction of their neighbours' median (0: keep all).")
 @click.option("--refine/--no-refine", default=False, show_default=True,
               help="Jointly refine intrinsics and all poses (bundle adjustment over board corners).")
+@click.option("--crop-size", type=int, default=64, show_default=True,
+              help="Side of the square RGBA crops in pixels (use 128-256 for static objects).")
+@click.option("--crop-fill", type=float, default=0.9, show_default=True,
+              help="Fraction of the crop side the object's bounding sphere spans.")
+@click.option("--test-fraction", type=float, default=0.2, show_default=True,
+              help="The last fraction of the capture's duration becomes the test split.")
+@click.option("--sequence-length", type=int, default=11, show_default=True,
+              help="Frames per RSSM training window (1 context + N-1 predicted).")
+@click.option("--background-minutes", type=click.FloatRange(min=0.05), default=2.0, show_default=True,
+              help="Training budget of the background field.")
+@click.option("--clean-plate/--no-clean-plate", default=True, show_default=True,
+              help="Learn the room from the clean plate when there is one (else from the object video).")
 @click.option("--stop-after", type=str, default=None,
-              help="Stop after this stage (poses) to check its output first.")
+              help="Stop after this stage (poses, background, crops) to check its output first.")
 @click.option("--workers", type=click.IntRange(1, 64), default=None,
               help="Processes decoding and detecting (default: up to 2).")
 @overwrite_option
 def preprocess(capture: Path, output: Path, board_path: Path | None, camera_path: Path | None,
                footage: Path | None, object_path: Path | None, background: Path | None,
-               fps: float | None, blur_ratio: float, refine: bool, stop_after: str | None,
-               workers: int | None, overwrite: bool) -> None:
-    """Turn CAPTURE into a posed dataset in OUTPUT: poses, then (later) mattes and crops.
+               fps: float | None, blur_ratio: float, refine: bool, crop_size: int, crop_fill: float,
+               test_fraction: float, sequence_length: int, background_minutes: float, clean_plate: bool,
+               stop_after: str | None, workers: int | None, overwrite: bool) -> None:
+    """Turn CAPTURE into a dataset in OUTPUT: poses, background field, mattes and RGBA crops.
 
-    The poses stage writes images/ (undistorted frames), transforms.json, camera.json,
-    colmap/sparse/0 and poses/ (report.json, camera_path.png).
+    Writes images/ (undistorted frames), transforms.json (with masks/), camera.json,
+    colmap/sparse/0, poses/ (report.json, camera_path.png), background/ (field.pt,
+    report.json), crops/ and crops.json, dataset.json and contact_sheet.png.
     """
+    from dataclasses import replace
+
+    from dbb_capture.background import BackgroundConfig
     from dbb_capture.preprocess import PreprocessConfig, resolve_capture, run_preprocess
 
     inputs = resolve_capture(capture, board_path, camera_path, footage, object_path, background)
     cfg = PreprocessConfig(fps=fps, blur_ratio=blur_ratio, refine=refine,
-                           workers=_workers(workers), stop_after=stop_after)
+                           workers=_workers(workers), stop_after=stop_after, crop_size=crop_size,
+                           crop_fill=crop_fill, test_fraction=test_fraction, sequence_length=sequence_length,
+                           use_clean_plate=clean_plate,
+                           background=replace(BackgroundConfig(), minutes=background_minutes))
     res = run_preprocess(inputs, output, cfg, overwrite=overwrite)
     for note in res.notes:
         console.print(f"[yellow]note:[/yellow] {note}", soft_wrap=True)
-    posed = res.last.images if res.stages_run and res.stages_run[-1] == "poses" else ()
-    console.print(f"[green]wrote[/green] {res.dataset}: stages {', '.join(res.stages_run)}"
-                  + (f"; {len(posed)} posed frames" if posed else ""))
+    last = res.stages_run[-1] if res.stages_run else None
+    what = ""
+    if last == "poses":
+        what = f"; {len(res.last.images)} posed frames"
+    elif last == "crops":
+        st = res.last.stats
+        what = (f"; {st['crops']} crops ({st['train']} train, {st['test']} test), "
+                f"{st['sequences']['train']} + {st['sequences']['test']} sequences; see dataset.json "
+                f"and contact_sheet.png")
+    console.print(f"[green]wrote[/green] {res.dataset}: stages {', '.join(res.stages_run)}" + what)

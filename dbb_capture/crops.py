@@ -131,7 +131,7 @@ def cut_crop(image: np.ndarray, cam: CropCamera, src: Intrinsics, src_c2w: np.nd
     Pixels outside the source frame are zero (transparent for RGBA). When the crop shrinks the
     image, it is rendered at ``s`` samples per pixel and box-filtered, so it does not alias.
     """
-    s = max(1, min(8, int(math.ceil(cam.window_px / cam.intr.width))))
+    s = max(1, min(8, math.ceil(cam.window_px / cam.intr.width)))
     mx, my = crop_maps(cam, src, src_c2w, s)
     h, w = image.shape[:2]
     touched = bool((mx < -0.5).any() or (my < -0.5).any() or (mx > w - 0.5).any() or (my > h - 0.5).any())
@@ -218,3 +218,65 @@ def crops_json(records: list[CropRecord], center: np.ndarray, radius: float, up:
             "sequence_length": sequence_length,
             "sequences": [{"start": s, "split": sp} for s, sp in windows],
             "frames": [r.to_json() for r in records]}
+
+
+# --------------------------------------------------------------------------- one frame, end to end
+@dataclass(frozen=True)
+class ObjectCrop:
+    """What one frame gives: the crop camera, the observed crop (S, S, 3), the predicted
+    background there (S, S, 3) and the straight RGBA cut-out (S, S, 4), all uint8."""
+
+    cam: CropCamera
+    observed: np.ndarray
+    predicted: np.ndarray
+    rgba: np.ndarray
+    touches_border: bool
+
+
+def object_crop(image: np.ndarray, src: Intrinsics, c2w: np.ndarray, center: np.ndarray, radius: float,
+                up: np.ndarray, size: int, fill: float, predict, matte_cfg=None) -> ObjectCrop:
+    """Crop, predict the background, matte: the per-frame work of preprocessing (pure function).
+
+    ``image`` (H, W, 3) uint8 with intrinsics ``src`` (distortion allowed) and OpenCV ``c2w``;
+    ``predict(cam) -> (S, S, 3) uint8`` renders the background model in a crop camera. Pixels of
+    the crop outside the frame are transparent (and the crop is flagged).
+    """
+    from .matte import MatteConfig, matte, sphere_disc
+
+    mcfg = matte_cfg or MatteConfig()
+    cam = crop_camera(c2w, src, center, radius, up, size, fill)
+    observed, touched = cut_crop(image, cam, src, c2w)
+    predicted = predict(cam)
+    rgba = matte(observed, predicted, sphere_disc(size, fill, mcfg.disc_margin), mcfg)
+    if touched:
+        inside, _ = cut_crop(np.full(image.shape[:2], 255, np.uint8), cam, src, c2w)
+        rgba[..., 3] = np.minimum(rgba[..., 3], inside.reshape(size, size))
+    return ObjectCrop(cam, observed, predicted, rgba, touched)
+
+
+def alpha_in_frame(alpha: np.ndarray, cam: CropCamera, intr: Intrinsics, c2w: np.ndarray) -> np.ndarray:
+    """A crop's alpha (S, S) uint8 drawn back into a full undistorted frame (H, W) uint8.
+
+    The crop camera shares the frame camera's centre, so the map is the homography
+    ``K_frame R K_crop^-1`` (``R``: crop camera to frame camera rotation).
+    """
+    R = invert_rigid(c2w)[:3, :3] @ cam.c2w[:3, :3]
+    H = intr.K @ R @ np.linalg.inv(cam.intr.K)
+    return cv2.warpPerspective(alpha, H, (intr.width, intr.height), flags=cv2.INTER_LINEAR,
+                               borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+def temporal_difference(prev: np.ndarray, cur: np.ndarray, gain: float = 4.0) -> np.ndarray:
+    """The thesis's "dx" view (S, S, 3) uint8: |cur - prev| of premultiplied RGBA crops, amplified."""
+    def pm(x):
+        return x[..., :3].astype(np.float32) * (x[..., 3:4].astype(np.float32) / 255.0)
+    return np.clip(np.abs(pm(cur) - pm(prev)) * gain, 0, 255).astype(np.uint8)
+
+
+def on_checker(rgba: np.ndarray, cell: int = 8) -> np.ndarray:
+    """Straight RGBA (H, W, 4) uint8 over a grey checkerboard, (H, W, 3) uint8, for viewing."""
+    h, w = rgba.shape[:2]
+    yy, xx = np.mgrid[0:h, 0:w]
+    bg = np.where(((yy // cell + xx // cell) % 2)[..., None] == 0, 200, 150).astype(np.float32)
+    a = rgba[..., 3:4].astype(np.float32) / 255.0
+    return np.round(rgba[..., :3] * a + bg * (1 - a)).astype(np.uint8)

@@ -4,31 +4,58 @@ Each stage is a function ``(ctx, previous record) -> record`` writing its files 
 dataset folder being built, so a later stage can also start from those files alone. The
 whole dataset is written aside and renamed into place at the end (``atomic_dir``).
 
-Stages in this build: ``poses`` (footage -> undistorted frames, ``transforms.json``, COLMAP
-model, pose report). Background removal and crops are planned after it; until they are
-added to :data:`STAGES` a full run stops after ``poses`` and says so.
+Stages: ``poses`` (footage -> undistorted frames, ``transforms.json``, COLMAP model, pose
+report), ``background`` (a radiance field of the room, from the clean plate or from the object
+video with the object's sphere left out; :mod:`.background`), ``crops`` (per frame: crop
+camera, predicted background, matte, straight RGBA crop; ``crops.json``, full-frame masks,
+``dataset.json`` statistics and a contact sheet).
 """
 
 from __future__ import annotations
 
 import shutil
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import cv2
 import numpy as np
 
+from .background import (
+    BackgroundConfig,
+    BackgroundModel,
+    PosedView,
+    parallax_views,
+    train_background,
+)
 from .board import BoardSpec
-from .cameras import Intrinsics
+from .cameras import Intrinsics, project_points
+from .crops import (
+    CropRecord,
+    ObjectCrop,
+    alpha_in_frame,
+    crops_json,
+    object_crop,
+    on_checker,
+    split_by_time,
+    temporal_difference,
+    up_from_cameras,
+)
 from .errors import DbbError, InputError
-from .formats import PosedImage, Undistorter, plot_camera_path, pose_report, write_colmap, write_transforms
+from .formats import (
+    PosedImage,
+    Undistorter,
+    plot_camera_path,
+    pose_report,
+    write_colmap,
+    write_transforms,
+)
 from .io import FootageSource, R3dSource, capture_footage, open_footage
-from .outputs import atomic_dir, write_json
+from .matte import MatteConfig
+from .outputs import atomic_dir, read_json, write_json
 from .poses import DetectorConfig, PoseConfig, PoseRun, estimate_poses
 from .progress import progress
-
-PLANNED_STAGES = ("background", "crops")  # named in the docs; not part of this build yet
 
 
 # --------------------------------------------------------------------------- inputs
@@ -82,6 +109,24 @@ class PreprocessConfig:
     stop_after: str | None = None
     detector: DetectorConfig = DetectorConfig()
     gates: PoseConfig = PoseConfig()
+    crop_size: int = 64
+    crop_fill: float = 0.9
+    test_fraction: float = 0.2
+    sequence_length: int = 11
+    use_clean_plate: bool = True          # False: learn the room from the object video even if a plate exists
+    background: BackgroundConfig = BackgroundConfig()
+    matte: MatteConfig = MatteConfig()
+
+    def validate(self) -> None:
+        if not 16 <= self.crop_size <= 1024:
+            raise DbbError(f"--crop-size {self.crop_size}: expected 16..1024 pixels")
+        if not 0.2 <= self.crop_fill <= 1.0:
+            raise DbbError(f"--crop-fill {self.crop_fill}: expected 0.2..1")
+        if not 0.0 <= self.test_fraction < 1.0:
+            raise DbbError(f"--test-fraction {self.test_fraction}: expected 0 <= f < 1")
+        if self.sequence_length < 2:
+            raise DbbError("--sequence-length must be at least 2 (1 context + 1 predicted frame)")
+        self.background.validate()
 
 
 @dataclass
@@ -165,7 +210,241 @@ def poses_stage(ctx: StageContext, _previous: Any = None) -> PosesOutput:
     return PosesOutput(out / "transforms.json", intr, tuple(images), run)
 
 
-STAGES: list[Stage] = [Stage("poses", poses_stage)]
+@dataclass(frozen=True)
+class ObjectSphere:
+    """The sphere that holds the object (board frame, metres) and the scene's up (3,)."""
+
+    center: np.ndarray
+    radius: float
+    up: np.ndarray
+    source: str                      # "object.json" or how it was estimated
+
+
+@dataclass(frozen=True)
+class BackgroundOutput:
+    """The background stage's record: the trained room and what it was made from."""
+
+    poses: PosesOutput
+    sphere: ObjectSphere
+    model: BackgroundModel
+    report: dict
+
+
+def object_sphere(ctx: StageContext, poses: PosesOutput) -> ObjectSphere:
+    """Read (or estimate, saying so) the object's sphere; check that the views see it."""
+    c2ws = np.stack([im.c2w for im in poses.images])
+    up = up_from_cameras(c2ws)
+    if (ctx.out / "object.json").is_file():
+        obj = read_json(ctx.out / "object.json", "object sphere")
+        try:
+            center, radius = np.asarray(obj["center"], float).reshape(3), float(obj["radius"])
+        except (KeyError, TypeError, ValueError):
+            raise InputError('object.json must be {"center": [x, y, z], "radius": r} (board frame, metres)') from None
+        if radius <= 0:
+            raise InputError(f"object.json: radius must be positive (got {radius})")
+        source = "object.json"
+    else:
+        from .datasets import Frame as DsFrame
+        from .datasets import estimate_volume
+
+        vol = estimate_volume([DsFrame(im.file_path, ctx.out / im.file_path, im.c2w, poses.intrinsics)
+                               for im in poses.images])
+        center, radius = np.asarray(vol.center), vol.radius
+        source = "estimated from where the cameras look (no object.json)"
+        ctx.notes.append(f"object sphere {source}: centre {np.round(center, 3).tolist()}, radius {radius:.3f} m")
+        write_json(ctx.out / "object.json", {"center": center.round(6).tolist(), "radius": round(radius, 6),
+                                             "estimated": True})
+    intr = poses.intrinsics
+    uv = np.stack([project_points(center[None], c, intr)[0] for c in c2ws])
+    depth = np.einsum("nj,nj->n", center - c2ws[:, :3, 3], c2ws[:, :3, 2])
+    inside = (depth > radius) & (uv[:, 0] >= 0) & (uv[:, 0] < intr.width) & (uv[:, 1] >= 0) & (uv[:, 1] < intr.height)
+    if inside.mean() < 0.5:
+        raise InputError(f"the object's sphere ({source}: centre {np.round(center, 3).tolist()} m) is outside "
+                         f"the view in {int((~inside).sum())} of {len(inside)} posed frames: check its centre "
+                         f"(board frame, metres, origin at the board's top-left corner)")
+    if not inside.all():
+        ctx.notes.append(f"object centre outside the frame in {int((~inside).sum())} posed frames")
+    return ObjectSphere(center, radius, up, source)
+
+
+def _subsample(items: list, n: int) -> list:
+    if len(items) <= n:
+        return items
+    return [items[i] for i in np.unique(np.linspace(0, len(items) - 1, n).round().astype(int))]
+
+
+def background_stage(ctx: StageContext, poses: PosesOutput) -> BackgroundOutput:
+    """Train the room's field; writes background/field.pt and background/report.json."""
+    inp, cfg = ctx.inputs, ctx.cfg
+    sphere = object_sphere(ctx, poses)
+    intr = poses.run.intrinsics                      # of the footage as filmed (distortion included)
+    plate = inp.background if cfg.use_clean_plate else None
+    folder = ctx.out / "background"
+    folder.mkdir()
+    report: dict = {}
+    with progress(transient=True) as prog:
+        if plate is not None:
+            src = open_footage(plate)
+            if (src.info.width, src.info.height) != (intr.width, intr.height):
+                raise InputError(f"the clean plate {plate.name} is {src.info.width}x{src.info.height} but the video "
+                                 f"is {intr.width}x{intr.height}: film both with the same camera settings")
+            task = prog.add_task("pose clean plate", total=None, info="")
+            prun = estimate_poses(src, inp.board, intr, fps=cfg.fps, blur_ratio=cfg.blur_ratio,
+                                  workers=cfg.workers, det_cfg=cfg.detector, pose_cfg=cfg.gates,
+                                  tick=lambda n: prog.advance(task, n), total=lambda n: prog.update(task, total=n),
+                                  intr_source=poses.run.intrinsics_source)
+            posed = _subsample(prun.posed, cfg.background.max_frames)
+            report["clean_plate"] = {"file": plate.name, "frames": len(prun.frames), "posed": len(prun.posed)}
+        else:
+            src = inp.footage
+            posed = _subsample(poses.run.posed, cfg.background.max_frames)
+            par = parallax_views(np.stack([p.c2w for p in posed]), sphere.center, sphere.radius, sphere.up)
+            report["parallax_views"] = par
+            if par < 3:
+                raise InputError(f"no clean plate, and too little parallax to see behind the object (a median of "
+                                 f"{par:g} other views see the table behind it; need 3): film a clean plate "
+                                 f"(background.mp4) or move around the object more")
+        by_index = {p.index: p for p in posed}
+        task = prog.add_task("cut training crops", total=len(posed), info="")
+        views = (PosedView(f.image, intr, by_index[f.index].c2w) for f in src.read(sorted(by_index)))
+        train_task = prog.add_task("train background field", total=100, info="")
+
+        def on_step(log, frac):
+            prog.update(train_task, completed=100 * frac, info=f"psnr {log.psnr:.1f} dB, step {log.steps}")
+
+        model = train_background(views, len(posed), sphere.center, sphere.radius, sphere.up,
+                                 clean_plate=plate is not None, cfg=cfg.background, on_step=on_step,
+                                 tick=lambda: prog.advance(task))
+    model.save(folder / "field.pt")
+    mode = "clean plate" if plate is not None else "object video (rays through the object's sphere left out)"
+    report.update({"mode": mode, "frames": model.frames, "rays": model.rays, "steps": model.log.steps,
+                   "seconds": round(model.log.seconds, 1), "train_psnr_db": round(model.log.psnr, 2),
+                   "layers": cfg.background.layers, "layer_px": cfg.background.layer_px,
+                   "object_sphere": {"center": sphere.center.round(6).tolist(), "radius": sphere.radius,
+                                     "source": sphere.source},
+                   "history": model.log.history})
+    write_json(folder / "report.json", report)
+    ctx.notes.append(f"background: {mode}, {model.frames} frames, {model.log.steps} steps, "
+                     f"training PSNR {model.log.psnr:.1f} dB")
+    return BackgroundOutput(poses, sphere, model, report)
+
+
+@dataclass(frozen=True)
+class CropsOutput:
+    """The crops stage's record: the crops dataset file and its records."""
+
+    crops_json: Path
+    records: tuple[CropRecord, ...]
+    stats: dict
+
+
+def crops_stage(ctx: StageContext, bg: BackgroundOutput) -> CropsOutput:
+    """Every posed frame -> RGBA crop; writes crops/, masks/, crops.json, dataset.json, contact_sheet.png."""
+    inp, cfg, out = ctx.inputs, ctx.cfg, ctx.out
+    poses, sphere = bg.poses, bg.sphere
+    src_intr = poses.run.intrinsics
+    posed = poses.run.posed
+    by_index = {p.index: p for p in posed}
+    {p.index: im for p, im in zip(posed, poses.images)}
+    splits = split_by_time(np.array([p.time for p in posed]), cfg.test_fraction)
+    split_of = {p.index: sp for p, sp in zip(posed, splits)}
+    (out / "crops").mkdir()
+    (out / "masks").mkdir()
+    records: list[CropRecord] = []
+    sheet_rows: list[np.ndarray] = []
+    sheet_at = set(np.linspace(0, len(posed) - 1, min(8, len(posed))).round().astype(int).tolist())
+    coverage, prev = [], None
+    with progress(transient=True) as prog:
+        task = prog.add_task("crop and matte", total=len(posed), info="")
+        for k, f in enumerate(inp.footage.read(sorted(by_index))):
+            p = by_index[f.index]
+            oc = object_crop(f.image, src_intr, p.c2w, sphere.center, sphere.radius, sphere.up,
+                             cfg.crop_size, cfg.crop_fill, bg.model.render, cfg.matte)
+            rel = f"crops/{f.name}.png"
+            _write_png(out / rel, cv2.cvtColor(oc.rgba, cv2.COLOR_RGBA2BGRA))
+            mask = alpha_in_frame(oc.rgba[..., 3], oc.cam, poses.intrinsics, p.c2w)
+            _write_png(out / f"masks/{f.name}.png", mask)
+            records.append(CropRecord(rel, oc.cam, f.index, p.time, str(split_of[f.index]), oc.touches_border,
+                                      mask_path=None))
+            coverage.append(float(oc.rgba[..., 3].mean()) / 255.0)
+            if k in sheet_at:
+                sheet_rows.append(_sheet_row(f.image, src_intr, p.c2w, sphere.center, oc, prev))
+            prev = oc.rgba
+            prog.advance(task)
+    doc = crops_json(records, sphere.center, sphere.radius, sphere.up, cfg.crop_size, cfg.crop_fill,
+                     cfg.sequence_length)
+    doc["note"] = "crop cameras: OpenGL camera-to-world, ChArUco board frame, metres; straight RGBA crops"
+    write_json(out / "crops.json", doc)
+    # The full frames get their masks (single channel, black = not the object).
+    tf = read_json(out / "transforms.json", "transforms")
+    for fr in tf["frames"]:
+        fr["mask_path"] = "masks/" + Path(fr["file_path"]).stem + ".png"
+    write_json(out / "transforms.json", tf)
+    if sheet_rows:
+        _write_png(out / "contact_sheet.png", cv2.cvtColor(np.concatenate(sheet_rows, 0), cv2.COLOR_RGB2BGR))
+    touched = [r.file_path for r in records if r.touches_border]
+    if touched:
+        ctx.notes.append(f"{len(touched)} crops reach past the frame's border (padded transparent, flagged "
+                         f"touches_border in crops.json): {', '.join(Path(t).stem for t in touched[:6])}"
+                         f"{' ...' if len(touched) > 6 else ''}")
+    stats = dataset_stats(doc, poses, bg, coverage)
+    write_json(out / "dataset.json", stats)
+    return CropsOutput(out / "crops.json", tuple(records), stats)
+
+
+def _write_png(path: Path, img: np.ndarray) -> None:
+    if not cv2.imwrite(str(path), img, [cv2.IMWRITE_PNG_COMPRESSION, 1]):
+        raise DbbError(f"cannot write {path}")
+
+
+def _sheet_row(frame: np.ndarray, intr: Intrinsics, c2w: np.ndarray, center: np.ndarray, oc: ObjectCrop,
+               prev: np.ndarray | None, cell: int = 128) -> np.ndarray:
+    """frame (crop window drawn) | observed crop | predicted background | alpha | RGBA | dx, (cell, W, 3)."""
+    h, w = frame.shape[:2]
+    scale = cell / h
+    small = cv2.resize(frame, (max(1, round(w * scale)), cell), interpolation=cv2.INTER_AREA)
+    uv = project_points(center[None], c2w, intr)[0] * scale
+    half = oc.cam.window_px / 2 * scale
+    x0, y0 = round(uv[0] - half), round(uv[1] - half)
+    x1, y1 = round(uv[0] + half), round(uv[1] + half)
+    cv2.rectangle(small, (x0, y0), (x1, y1), (255, 255, 0), 1)
+    tiles = [oc.observed, oc.predicted, np.repeat(oc.rgba[..., 3:], 3, -1), on_checker(oc.rgba),
+             temporal_difference(prev, oc.rgba) if prev is not None else np.zeros_like(oc.observed)]
+    tiles = [cv2.resize(t, (cell, cell), interpolation=cv2.INTER_NEAREST) for t in tiles]
+    return np.concatenate([small] + tiles, 1)
+
+
+def dataset_stats(doc: dict, poses: PosesOutput, bg: BackgroundOutput, coverage: list[float]) -> dict:
+    """Summary statistics of the dataset (``dataset.json``)."""
+    frames = doc["frames"]
+    vp = np.array([[f["viewpoint"]["azimuth_deg"], f["viewpoint"]["elevation_deg"], f["viewpoint"]["distance_m"]]
+                   for f in frames]) if frames else np.zeros((0, 3))
+
+    def rng(col):
+        return [round(float(vp[:, col].min()), 3), round(float(vp[:, col].max()), 3)] if len(vp) else None
+
+    seqs = doc["sequences"]
+    times = [f["time"] for f in frames]
+    return {
+        "frames_in_footage": poses.run.frames_in_footage, "frames_sampled": len(poses.run.frames),
+        "frames_posed": len(poses.images), "crops": len(frames),
+        "train": sum(f["split"] == "train" for f in frames), "test": sum(f["split"] == "test" for f in frames),
+        "sequences": {"length": doc["sequence_length"], "train": sum(q["split"] == "train" for q in seqs),
+                      "test": sum(q["split"] == "test" for q in seqs)},
+        "duration_s": round(max(times) - min(times), 3) if times else 0.0,
+        "crop_size": doc["crop_size"], "crop_fill": doc["crop_fill"],
+        "touching_border": sum(bool(f["touches_border"]) for f in frames),
+        "alpha_coverage_mean": round(float(np.mean(coverage)), 4) if coverage else 0.0,
+        "viewpoint_range": {"azimuth_deg": rng(0), "elevation_deg": rng(1), "distance_m": rng(2)},
+        "object": doc["object"], "up": doc["up"],
+        "background": {k: bg.report[k] for k in ("mode", "frames", "steps", "train_psnr_db") if k in bg.report},
+        "intrinsics_source": poses.run.intrinsics_source,
+    }
+
+
+STAGES: list[Stage] = [Stage("poses", poses_stage), Stage("background", background_stage),
+                       Stage("crops", crops_stage)]
+
 
 
 # --------------------------------------------------------------------------- orchestration
@@ -184,10 +463,8 @@ def stage_names() -> list[str]:
 def run_preprocess(inputs: CaptureInputs, out: Path, cfg: PreprocessConfig = PreprocessConfig(),
                    overwrite: bool = False) -> PreprocessResult:
     """Run the stages in order into ``out`` (written aside, renamed into place)."""
+    cfg.validate()
     if cfg.stop_after is not None and cfg.stop_after not in stage_names():
-        if cfg.stop_after in PLANNED_STAGES:
-            raise DbbError(f"--stop-after {cfg.stop_after}: that stage is not available in this "
-                           f"build yet (available: {', '.join(stage_names())})")
         raise DbbError(f"--stop-after {cfg.stop_after}: unknown stage "
                        f"(expected one of {', '.join(stage_names())})")
     ran: list[str] = []
@@ -199,10 +476,6 @@ def run_preprocess(inputs: CaptureInputs, out: Path, cfg: PreprocessConfig = Pre
             ran.append(stage.name)
             if stage.name == cfg.stop_after:
                 break
-        missing = [s for s in PLANNED_STAGES if s not in stage_names()]
-        if cfg.stop_after is None and missing:
-            ctx.notes.append(f"stopped after {ran[-1]}: the stages {', '.join(missing)} are not "
-                             f"available in this build yet")
         write_json(tmp / "preprocess.json", {
             "capture": str(inputs.root.resolve()), "footage": str(inputs.footage.path.resolve()),
             "background": str(inputs.background.resolve()) if inputs.background else None,

@@ -1,0 +1,521 @@
+"""Background prediction: a radiance field of the room around the object (thesis 6.1.3).
+
+The matte only needs the room where it shows *behind or around the object*, in crop windows
+whose rays all pass within a few object radii of the object centre. There, what lies behind
+the object is mostly the surface it stands on. So the field is layered along "up" (the board
+normal, from the data): ``K`` planes parallel to the board plane (one of them the board plane
+itself) over a square around the object, each an RGBA texture (colour and opacity), and an
+opaque sphere far past every camera for the rest of the room. A ray's colour is the
+front-to-back alpha composite of its crossings with the planes, then the sphere. It is a
+layered radiance field (as multi-plane images are): trained by volume rendering from posed
+views, parallax-correct, and every ray needs only ~K+1 samples found in closed form, which is
+what makes it train in minutes and render crop windows in milliseconds on a CPU. The table
+and the board lie exactly on a layer, so they come out sharp from every side.
+
+Training data are "background crops": each clean-plate frame cut through the crop camera it
+would have had, so the field is trained in the geometry it is rendered in. Training starts
+from a plane sweep (each texel: the mean colour of its point across views, opaque where the
+views agree). Without a clean plate the object video is used with every pixel whose ray
+passes through the object's sphere left out; parallax shows other views what lies behind it.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from .cameras import Intrinsics, pixel_grid, project_points
+from .crops import CropCamera, crop_camera, cut_crop
+from .errors import DbbError
+from .fields import RowTable
+
+
+@dataclass(frozen=True)
+class BackgroundConfig:
+    """The field's shape and its training. Lengths are multiples of the object radius ``R``."""
+
+    layers: int = 16
+    layer_px: int = 384             # texels along each side of a layer
+    env_width: int = 256            # azimuth texels of the far sphere (height: half of it)
+    top: float = 1.5                # highest layer: this many R above the object centre
+    r_out_factor: float = 2.0       # far sphere: this many times the farthest camera distance
+    train_size: int = 64            # side of the training crops (pixels)
+    train_fill: float = 0.6         # the sphere fills less of a training crop: a margin around it
+    minutes: float = 2.0
+    steps: int | None = None        # stop after this many steps (tests), else the time budget
+    batch_rays: int = 8192
+    lr: float = 0.05
+    tv_weight: float = 1e-4
+    sphere_margin: float = 1.08     # without a clean plate: rays within this many R are left out
+    max_frames: int = 400
+    seed: int = 0
+
+    def validate(self) -> None:
+        if self.layers < 3 or self.layer_px < 16 or self.minutes <= 0 and not self.steps:
+            raise DbbError("background field: need >= 3 layers, >= 16 texels and a positive budget")
+
+
+# --------------------------------------------------------------------------- geometry
+def _bilinear_rows(x: torch.Tensor, y: torch.Tensor, h: int, w: int, base: torch.Tensor,
+                   wrap_x: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Table rows (P, 4) of the 4 texels around continuous texel coordinates ``x``, ``y`` (P,)
+    (texel centres at integers) and the blend weights ``fx``, ``fy`` (P, 1)."""
+    y = y.clamp(0, h - 1)
+    if not wrap_x:
+        x = x.clamp(0, w - 1)
+    x0 = torch.floor(x) if wrap_x else torch.floor(x).clamp(max=w - 2)
+    y0 = torch.floor(y).clamp(max=h - 2)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    xi0 = x0.long() % w if wrap_x else x0.long()
+    xi1 = (xi0 + 1) % w if wrap_x else xi0 + 1
+    b = base + y0.long() * w
+    return torch.stack([b + xi0, b + xi1, b + w + xi0, b + w + xi1], 1), fx, fy
+
+
+class LayerField:
+    """Layers along ``up`` plus a far sphere, as one texel table (rows of RGB and opacity logits).
+
+    ``center`` (3,) object centre, board frame (m); ``basis`` (3, 3) rows x_ref, y_ref, up;
+    ``heights`` (K,) layer heights above the board plane (m, along up), increasing; layers cover
+    ``|u|, |v| <= half`` around the centre with ``S x S`` texels; the sphere has radius
+    ``r_out`` and ``He x We`` equirectangular texels (azimuth wraps).
+    """
+
+    def __init__(self, layers: torch.Tensor, env: torch.Tensor, center: torch.Tensor, basis: torch.Tensor,
+                 heights: torch.Tensor, half: float, r_out: float):
+        """``layers`` (K, S, S, 4), ``env`` (He, We, 4) logits."""
+        self.k, self.s = layers.shape[0], layers.shape[1]
+        self.he, self.we = env.shape[0], env.shape[1]
+        self.table = RowTable(torch.cat([layers.reshape(-1, 4), env.reshape(-1, 4)]))
+        self.center, self.basis, self.heights = center, basis, heights
+        self.half, self.r_out = float(half), float(r_out)
+
+    @property
+    def device(self) -> torch.device:
+        return self.table.data.device
+
+    @property
+    def n_layer_rows(self) -> int:
+        return self.k * self.s * self.s
+
+    @property
+    def layers(self) -> torch.Tensor:
+        return self.table.data[:self.n_layer_rows].view(self.k, self.s, self.s, 4)
+
+    @property
+    def env(self) -> torch.Tensor:
+        return self.table.data[self.n_layer_rows:].view(self.he, self.we, 4)
+
+    def _blend(self, rows, fx, fy) -> torch.Tensor:
+        v = self.table.gather(rows)                                          # (P, 4 texels, 4)
+        return (v[:, 0] * (1 - fx) + v[:, 1] * fx) * (1 - fy) + (v[:, 2] * (1 - fx) + v[:, 3] * fx) * fy
+
+    def composite(self, origins: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+        """Colour (N, 3) in 0..1 along rays ``origins``, ``dirs`` (N, 3) (board frame, dirs unit)."""
+        n = origins.shape[0]
+        oc = origins - self.center
+        ou, du = oc @ self.basis.T, dirs @ self.basis.T                     # in (x_ref, y_ref, up)
+        h0 = float(self.center @ self.basis[2])                             # centre height above the board
+        e = torch.where(du[:, 2].abs() < 1e-9, torch.full_like(du[:, 2], 1e-9), du[:, 2])
+        t = (self.heights[None] - h0 - ou[:, 2:3]) / e[:, None]            # (N, K)
+        pu = ou[:, None, 0] + t * du[:, None, 0]
+        pv = ou[:, None, 1] + t * du[:, None, 1]
+        valid = (t > 0) & (pu.abs() <= self.half) & (pv.abs() <= self.half)
+        t = torch.where(valid, t, torch.full_like(t, float("inf")))
+        t, order = torch.sort(t, 1)
+        valid = torch.gather(valid, 1, order)
+        pu, pv = torch.gather(pu, 1, order), torch.gather(pv, 1, order)
+        ri, ci = valid.nonzero(as_tuple=True)
+        layer = order[ri, ci]
+        s = self.s
+        rows, fx, fy = _bilinear_rows((pu[ri, ci] / self.half + 1) * 0.5 * s - 0.5,
+                                      (pv[ri, ci] / self.half + 1) * 0.5 * s - 0.5, s, s, layer * s * s, False)
+        raw = self._blend(rows, fx, fy)
+        alpha = torch.zeros(t.shape, device=t.device, dtype=origins.dtype).index_put((ri, ci), torch.sigmoid(raw[:, 3]))
+        trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha + 1e-7], 1), 1)
+        w = (alpha * trans[:, :-1])[ri, ci]
+        rgb = torch.zeros(n, 3, device=t.device, dtype=origins.dtype).index_add(0, ri, torch.sigmoid(raw[:, :3]) * w[:, None])
+        # The far sphere (the camera is inside it) takes what is left.
+        b = (ou * du).sum(-1)
+        tf = -b + torch.sqrt((b * b - (ou * ou).sum(-1) + self.r_out ** 2).clamp_min(0))
+        q = (ou + tf[:, None] * du) / self.r_out
+        x = (torch.atan2(q[:, 1], q[:, 0]) / (2 * math.pi) + 0.5) * self.we - 0.5
+        y = (0.5 - torch.asin(q[:, 2].clamp(-1, 1)) / math.pi) * self.he - 0.5
+        rows, fx, fy = _bilinear_rows(x, y, self.he, self.we, torch.full_like(x, self.n_layer_rows, dtype=torch.long), True)
+        env = torch.sigmoid(self._blend(rows, fx, fy)[:, :3])
+        return rgb + trans[:, -1:] * env
+
+    def baked(self) -> tuple[np.ndarray, np.ndarray]:
+        """Texture logits as arrays for rendering: layers (K, S, S, 4) and far sphere (He, We + 1, 3)
+        float32 (the sphere's first column repeated at the end, so sampling wraps around)."""
+        if getattr(self, "_baked", None) is None or self._baked[2] != self.table.t:
+            lay = self.layers.cpu().numpy()
+            env = self.env[..., :3].cpu().numpy()
+            self._baked = (np.ascontiguousarray(lay), np.ascontiguousarray(np.concatenate([env, env[:, :1]], 1)),
+                           self.table.t)
+        return self._baked[0], self._baked[1]
+
+    def render(self, cam: CropCamera) -> np.ndarray:
+        """The predicted room (H, W, 3) uint8 seen by a pinhole crop camera.
+
+        The image :meth:`composite` gives, computed the fast way: each layer is resampled with
+        one ``cv2.remap`` at its crossing points, then the layers are composited in depth order.
+        """
+        import cv2
+
+        lay, env = self.baked()
+        h, w = cam.intr.height, cam.intr.width
+        o, d = pinhole_rays(cam.intr, cam.c2w)
+        basis = self.basis.cpu().numpy().astype(np.float64)
+        c = self.center.cpu().numpy().astype(np.float64)
+        ou, du = (o - c) @ basis.T, d @ basis.T
+        e = np.where(np.abs(du[:, 2]) < 1e-9, 1e-9, du[:, 2])
+        heights = self.heights.cpu().numpy().astype(np.float64) - c @ basis[2]
+        t = (heights[:, None] - ou[None, :, 2]) / e[None]                           # (K, P)
+        pu, pv = ou[None, :, 0] + t * du[None, :, 0], ou[None, :, 1] + t * du[None, :, 1]
+        valid = (t > 0) & (np.abs(pu) <= self.half) & (np.abs(pv) <= self.half)
+        mx = ((pu / self.half + 1) * 0.5 * self.s - 0.5).astype(np.float32)
+        my = ((pv / self.half + 1) * 0.5 * self.s - 0.5).astype(np.float32)
+        samples = np.stack([cv2.remap(lay[k], mx[k].reshape(h, w), my[k].reshape(h, w), cv2.INTER_LINEAR,
+                                      borderMode=cv2.BORDER_REPLICATE).reshape(-1, 4)
+                            for k in range(self.k)])                                # (K, P, 4)
+        samples = 1.0 / (1.0 + np.exp(-samples))        # interpolate logits, then activate (as in training)
+        samples[..., 3] *= valid
+        order = np.argsort(np.where(valid, t, np.inf), axis=0)
+        samples = np.take_along_axis(samples, order[..., None], 0)
+        alpha = samples[..., 3]
+        trans = np.cumprod(np.concatenate([np.ones((1, alpha.shape[1]), np.float32), 1 - alpha + 1e-7]), 0)
+        rgb = (samples[..., :3] * (alpha * trans[:-1])[..., None]).sum(0)
+        b = (ou * du).sum(-1)
+        tf = -b + np.sqrt(np.clip(b * b - (ou * ou).sum(-1) + self.r_out ** 2, 0, None))
+        q = (ou + tf[:, None] * du) / self.r_out
+        ex = ((np.arctan2(q[:, 1], q[:, 0]) / (2 * np.pi) + 0.5) * self.we - 0.5) % self.we
+        ey = (0.5 - np.arcsin(np.clip(q[:, 2], -1, 1)) / np.pi) * self.he - 0.5
+        far = cv2.remap(env, ex.astype(np.float32).reshape(h, w), ey.astype(np.float32).reshape(h, w),
+                        cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(-1, 3)
+        rgb = rgb + trans[-1][:, None] / (1.0 + np.exp(-far))
+        return np.round(np.clip(rgb, 0, 1) * 255).reshape(h, w, 3).astype(np.uint8)
+
+    def resized(self, layer_px: int) -> LayerField:
+        """The same field with ``layer_px`` texels per layer side (a fresh optimiser state)."""
+        lay = F.interpolate(self.layers.permute(0, 3, 1, 2), size=(layer_px, layer_px), mode="bilinear",
+                            align_corners=False).permute(0, 2, 3, 1)
+        return LayerField(lay, self.env.clone(), self.center, self.basis, self.heights, self.half, self.r_out)
+
+    def state(self) -> dict:
+        return {"layers": self.layers.half().cpu(), "env": self.env.half().cpu(), "center": self.center.cpu(),
+                "basis": self.basis.cpu(), "heights": self.heights.cpu(), "half": self.half, "r_out": self.r_out}
+
+    @classmethod
+    def from_state(cls, st: dict, device: torch.device | str = "cpu") -> LayerField:
+        return cls(st["layers"].float().to(device), st["env"].float().to(device), st["center"].float().to(device),
+                   st["basis"].float().to(device), st["heights"].float().to(device), st["half"], st["r_out"])
+
+
+def pinhole_rays(intr: Intrinsics, c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Origins and unit directions (H*W, 3) in the board frame of an undistorted pinhole camera."""
+    px = pixel_grid(intr.width, intr.height).reshape(-1, 2)
+    d = np.stack([(px[:, 0] - intr.cx) / intr.fx, (px[:, 1] - intr.cy) / intr.fy, np.ones(len(px))], 1)
+    d = d @ np.asarray(c2w)[:3, :3].T
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return np.broadcast_to(np.asarray(c2w)[:3, 3], d.shape).copy(), d
+
+
+def field_basis(up: np.ndarray, c2ws: np.ndarray, center: np.ndarray) -> np.ndarray:
+    """Rows x_ref, y_ref, up (3, 3): x_ref is horizontal and 90 deg from the cameras' mean
+    direction, so the far sphere's azimuth seam (+-180 deg) lies away from both the side the
+    cameras stand on and the side behind the object."""
+    up = np.asarray(up, float) / np.linalg.norm(up)
+    v = (np.asarray(c2ws)[:, :3, 3] - center).mean(0)
+    v = v - (v @ up) * up
+    if np.linalg.norm(v) < 1e-9:
+        v = np.cross(up, [1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.cross(up, [0.0, 1.0, 0.0])
+    v /= np.linalg.norm(v)
+    x_ref = np.cross(v, up)
+    return np.stack([x_ref, np.cross(up, x_ref), up])
+
+
+def new_field(cfg: BackgroundConfig, center: np.ndarray, radius: float, up: np.ndarray, c2ws: np.ndarray,
+              bank: RayBank, layer_px: int, device: torch.device | str = "cpu") -> LayerField:
+    """A transparent field (opaque grey far sphere) sized to the cameras and the training rays.
+
+    Layers: from one spacing below the board plane to ``top * R`` above the centre; their square
+    reaches as far as the training rays meet the board plane (99th percentile).
+    """
+    basis = field_basis(up, c2ws, center)
+    far = float(np.linalg.norm(np.asarray(c2ws)[:, :3, 3] - center, axis=1).max())
+    r_out = max(cfg.r_out_factor * far, 4 * radius)
+    h_top = float(center @ basis[2]) + cfg.top * radius
+    step = h_top / (cfg.layers - 2)
+    heights = np.arange(-1, cfg.layers - 1) * step
+    o, d = bank.origins.numpy().astype(np.float64), bank.dirs.numpy().astype(np.float64)
+    e = d @ basis[2]
+    t = -(o @ basis[2]) / np.where(np.abs(e) < 1e-9, 1e-9, e)
+    hit = (o + t[:, None] * d - center)[t > 0]
+    reach = np.percentile(np.abs(hit @ basis[:2].T), 99) if len(hit) else 4 * radius
+    half = float(np.clip(reach * 1.05, 2 * radius, 0.5 * r_out))
+    lay = torch.zeros(cfg.layers, layer_px, layer_px, 4)
+    lay[..., 3] = -4.0
+    env = torch.zeros(max(4, cfg.env_width // 2), cfg.env_width, 4)
+    env[..., :3] = torch.logit(bank.rgb.mean(0).clamp(0.02, 0.98))
+    f32 = {"dtype": torch.float32, "device": device}
+    return LayerField(lay.to(device), env.to(device), torch.tensor(center, **f32), torch.tensor(basis, **f32),
+                      torch.tensor(heights, **f32), half, r_out)
+
+
+# --------------------------------------------------------------------------- training data
+@dataclass(frozen=True)
+class PosedView:
+    """A source frame to learn from: RGB (H, W, 3) uint8, its (possibly distorted) camera, OpenCV c2w."""
+
+    image: np.ndarray
+    intr: Intrinsics
+    c2w: np.ndarray
+
+
+def view_rays(view: PosedView, center: np.ndarray, radius: float, up: np.ndarray, size: int, fill: float,
+              drop_sphere: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One frame's training rays: its crop window cut at ``size`` pixels (pure function).
+
+    Returns origins, dirs (M, 3) float32 and colours (M, 3) float32 in 0..1; pixels outside the
+    frame are left out, and with ``drop_sphere`` (a radius factor) so is every pixel whose ray
+    passes within ``drop_sphere * radius`` of the centre (the object is in this frame).
+    """
+    cam = crop_camera(view.c2w, view.intr, center, radius, up, size, fill)
+    rgb, _ = cut_crop(view.image, cam, view.intr, view.c2w)
+    mask, _ = cut_crop(np.full(view.image.shape[:2], 255, np.uint8), cam, view.intr, view.c2w)
+    keep = mask.reshape(-1) == 255
+    o, d = pinhole_rays(cam.intr, cam.c2w)
+    if drop_sphere is not None:
+        oc = center - o
+        along = (oc * d).sum(1)
+        miss2 = (oc * oc).sum(1) - along ** 2
+        keep &= miss2 > (drop_sphere * radius) ** 2
+    cols = rgb.reshape(-1, 3)[keep].astype(np.float32) / 255.0
+    return o[keep].astype(np.float32), d[keep].astype(np.float32), cols
+
+
+@dataclass
+class RayBank:
+    origins: torch.Tensor
+    dirs: torch.Tensor
+    rgb: torch.Tensor
+
+    @property
+    def n(self) -> int:
+        return int(self.rgb.shape[0])
+
+
+def build_bank(views: Iterable[PosedView], center: np.ndarray, radius: float, up: np.ndarray,
+               cfg: BackgroundConfig, drop_sphere: bool,
+               tick: Callable[[], None] | None = None) -> RayBank:
+    parts = []
+    for v in views:
+        parts.append(view_rays(v, center, radius, up, cfg.train_size, cfg.train_fill,
+                               cfg.sphere_margin if drop_sphere else None))
+        if tick:
+            tick()
+    if not parts:
+        raise DbbError("no posed frames to learn the background from")
+    o, d, c = (torch.from_numpy(np.concatenate(x)) for x in zip(*parts))
+    return RayBank(o, d, c)
+
+
+# --------------------------------------------------------------------------- photo-consistency start
+def photo_init(fld: LayerField, views: list[PosedView], exclude_radius: float | None = None,
+               max_views: int = 24, sharpness: float = 0.04) -> LayerField:
+    """Plane sweep: every layer texel takes the mean colour of its point seen in up to
+    ``max_views`` views, and an opacity that is high where those colours agree (a surface) and
+    low where they do not (empty space). Training then starts near the answer.
+
+    ``exclude_radius``: a view whose ray to the point passes this close to the object centre
+    does not count (the object stands there in the object video).
+    """
+    import cv2
+
+    pick = np.unique(np.linspace(0, len(views) - 1, min(max_views, len(views))).round().astype(int))
+    s = fld.s
+    g = (np.arange(s) + 0.5) / s * 2 * fld.half - fld.half
+    vv, uu = np.meshgrid(g, g, indexing="ij")
+    basis = fld.basis.cpu().numpy().astype(np.float64)
+    center = fld.center.cpu().numpy().astype(np.float64)
+    h0 = center @ basis[2]
+    layers = fld.layers.clone()
+    for li, hgt in enumerate(fld.heights.cpu().numpy().astype(np.float64)):
+        pts = center + uu.reshape(-1, 1) * basis[0] + vv.reshape(-1, 1) * basis[1] + (hgt - h0) * basis[2]
+        s1, s2, cnt = np.zeros((len(pts), 3)), np.zeros((len(pts), 3)), np.zeros(len(pts))
+        for vi in pick:
+            v = views[vi]
+            eye = v.c2w[:3, 3]
+            ok = (pts - eye) @ v.c2w[:3, 2] > 1e-3
+            if exclude_radius is not None:
+                d = pts - eye
+                d /= np.linalg.norm(d, axis=1, keepdims=True)
+                oc = center - eye
+                along = d @ oc
+                ok &= ~((along > 0) & ((oc @ oc) - along ** 2 < exclude_radius ** 2))
+            uv = project_points(pts, v.c2w, v.intr).astype(np.float32)
+            hh, ww = v.image.shape[:2]
+            ok &= (uv[:, 0] >= 0) & (uv[:, 0] <= ww - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= hh - 1)
+            col = cv2.remap(v.image, uv[:, 0].reshape(s, s), uv[:, 1].reshape(s, s), cv2.INTER_LINEAR)
+            col = col.reshape(-1, 3).astype(np.float64) / 255.0
+            s1[ok] += col[ok]
+            s2[ok] += col[ok] ** 2
+            cnt[ok] += 1
+        seen = cnt >= 2
+        mean = np.clip(s1 / np.maximum(cnt, 1)[:, None], 0.01, 0.99)
+        var = (s2 / np.maximum(cnt, 1)[:, None] - mean ** 2).sum(1).clip(0)
+        alpha = np.clip(np.where(seen, 0.9 * np.exp(-var / sharpness ** 2), 0.02), 0.01, 0.99)
+        t = layers[li].view(-1, 4)
+        t[:, :3] = torch.from_numpy(np.where(seen[:, None], np.log(mean / (1 - mean)), 0.0)).float()
+        t[:, 3] = torch.from_numpy(np.log(alpha / (1 - alpha))).float()
+    return LayerField(layers, fld.env.clone(), fld.center, fld.basis, fld.heights, fld.half, fld.r_out)
+
+
+# --------------------------------------------------------------------------- training
+@dataclass
+class TrainLog:
+    steps: int = 0
+    seconds: float = 0.0
+    psnr: float = float("nan")
+    history: list[dict] = field(default_factory=list)
+
+
+def _tv(fld: LayerField, n: int, gen: torch.Generator) -> torch.Tensor:
+    """Total variation over random layer texel neighbourhoods (smooths texels few rays see)."""
+    s = fld.s
+    r = torch.randint(0, fld.n_layer_rows, (n,), generator=gen)
+    right = torch.where(r % s < s - 1, r + 1, r)
+    down = torch.where((r // s) % s < s - 1, r + s, r)
+    v = fld.table.gather(torch.stack([r, right, down], 1))
+    return ((v[:, 0] - v[:, 1]) ** 2).mean() + ((v[:, 0] - v[:, 2]) ** 2).mean()
+
+
+def train_field(fld: LayerField, bank: RayBank, cfg: BackgroundConfig,
+                on_step: Callable[[TrainLog, float], None] | None = None) -> tuple[LayerField, TrainLog]:
+    """Fit ``fld`` to the bank's rays (MSE), coarse to fine: half, then full layer size."""
+    if bank.n < 1000:
+        raise DbbError(f"only {bank.n} rays to learn the background from: too little of the room is seen")
+    gen = torch.Generator().manual_seed(cfg.seed)
+    dev = fld.device
+    levels = [max(16, fld.s // 2), fld.s]
+    fld = fld.resized(levels[0])
+    log = TrainLog()
+    t0 = time.monotonic()
+    level = 0
+    while True:
+        seconds = time.monotonic() - t0
+        frac = (log.steps / cfg.steps) if cfg.steps else seconds / (cfg.minutes * 60)
+        if frac >= 1.0:
+            break
+        if frac >= 0.4 and level == 0:
+            level = 1
+            fld = fld.resized(levels[1])
+        idx = torch.randint(0, bank.n, (cfg.batch_rays,), generator=gen)
+        pred = fld.composite(bank.origins[idx].to(dev), bank.dirs[idx].to(dev))
+        mse = F.mse_loss(pred, bank.rgb[idx].to(dev))
+        loss = mse + cfg.tv_weight * _tv(fld, 16384, gen) if cfg.tv_weight > 0 else mse
+        loss.backward()
+        fld.table.adam_step(cfg.lr)
+        log.steps += 1
+        p = -10 * math.log10(max(float(mse.detach()), 1e-10))
+        log.psnr = p if math.isnan(log.psnr) else 0.9 * log.psnr + 0.1 * p
+        if log.steps % 25 == 0:
+            log.history.append({"step": log.steps, "seconds": round(time.monotonic() - t0, 2),
+                                "psnr": round(log.psnr, 3)})
+        if on_step:
+            on_step(log, min(frac, 1.0))
+    log.seconds = time.monotonic() - t0
+    if level == 0:  # a budget that ended early still delivers a full-size field
+        fld = fld.resized(levels[1])
+    return fld, log
+
+
+# --------------------------------------------------------------------------- the model
+@dataclass
+class BackgroundModel:
+    """A trained background field and how it was made."""
+
+    field: LayerField
+    mode: str                  # "clean plate" or "object video"
+    frames: int
+    rays: int
+    log: TrainLog
+    cfg: BackgroundConfig
+
+    def render(self, cam: CropCamera) -> np.ndarray:
+        """Predicted background (H, W, 3) uint8 in a crop camera (never the full frame)."""
+        return self.field.render(cam)
+
+    def save(self, path: Path) -> None:
+        torch.save({"field": self.field.state(), "mode": self.mode, "frames": self.frames, "rays": self.rays,
+                    "cfg": asdict(self.cfg), "steps": self.log.steps, "psnr": self.log.psnr}, path)
+
+    @classmethod
+    def load(cls, path: Path, device: torch.device | str = "cpu") -> BackgroundModel:
+        try:
+            st = torch.load(path, map_location="cpu", weights_only=False)
+        except Exception as e:  # noqa: BLE001 - any unreadable file is the same user error
+            raise DbbError(f"cannot read the background model {path}: {e}") from None
+        log = TrainLog(steps=st["steps"], psnr=st["psnr"])
+        return cls(LayerField.from_state(st["field"], device), st["mode"], st["frames"], st["rays"], log,
+                   BackgroundConfig(**st["cfg"]))
+
+
+def parallax_views(c2ws: np.ndarray, center: np.ndarray, radius: float, up: np.ndarray) -> float:
+    """How well the views see past the object: median over views of the number of other views
+    that see, with a ray missing the object's sphere, the board-plane point hidden behind the
+    object centre from that view (a count; 0 when no view's line of sight meets the plane)."""
+    eyes = np.asarray(c2ws)[:, :3, 3]
+    counts = []
+    for e in eyes:
+        v = center - e
+        if abs(v @ up) < 1e-9:
+            continue
+        t = -(e @ up) / (v @ up)  # the board plane is {x: x . up = 0} through the origin
+        if t <= 1:
+            continue
+        p = e + t * v
+        d = p - eyes
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        oc = center - eyes
+        along = (oc * d).sum(1)
+        counts.append(int((((oc * oc).sum(1) - along ** 2) > radius ** 2).sum()))
+    return float(np.median(counts)) if counts else 0.0
+
+
+def train_background(views: Iterable[PosedView], n_views: int, center: np.ndarray, radius: float,
+                     up: np.ndarray, clean_plate: bool, cfg: BackgroundConfig = BackgroundConfig(),
+                     device: torch.device | str = "cpu",
+                     on_step: Callable[[TrainLog, float], None] | None = None,
+                     tick: Callable[[], None] | None = None) -> BackgroundModel:
+    """Train the background field from ``n_views`` posed views of the clean plate (``clean_plate``)
+    or of the object video (rays through the object's sphere are then left out).
+
+    ``views`` is consumed once, as a stream: only each view's training crop and a few whole
+    frames for the plane sweep are kept, so long 4K footage does not fill the memory.
+    """
+    keep = set(np.linspace(0, max(n_views - 1, 0), min(24, max(n_views, 1))).round().astype(int).tolist())
+    init_views: list[PosedView] = []
+    c2ws = []
+
+    def stream():
+        for i, v in enumerate(views):
+            c2ws.append(v.c2w)
+            if i in keep:
+                init_views.append(v)
+            yield v
+
+    bank = build_bank(stream(), center, radius, up, cfg, drop_sphere=not clean_plate, tick=tick)
+    exclude = None if clean_plate else cfg.sphere_margin * radius
+    fld = new_field(cfg, center, radius, up, np.stack(c2ws), bank, cfg.layer_px // 2, device)
+    fld = photo_init(fld, init_views, exclude).resized(cfg.layer_px)
+    fld, log = train_field(fld, bank, cfg, on_step)
+    return BackgroundModel(fld, "clean plate" if clean_plate else "object video", len(c2ws), bank.n, log, cfg)
