@@ -21,7 +21,6 @@ import sys
 import time
 from pathlib import Path
 
-import numba
 import numpy as np
 
 from dbb_capture.cameras import Intrinsics, look_at
@@ -53,7 +52,7 @@ def bench_run(run_dir: Path, repeats: int, with_psnr: bool, with_torch: bool) ->
     r = TreeRenderer(tree)
     out = {"run": str(run_dir), "tree_mb": run.tree_path.stat().st_size / 1e6,
            "leaves_with_data": tree.n_leaves_with_data(), "depth": tree.depth_limit,
-           "renderer_setup_s": time.perf_counter() - t, "threads": numba.get_num_threads()}
+           "renderer_setup_s": time.perf_counter() - t, "threads": r.threads}
     out.update(speeds(r, test[0].c2w, test[0].intr, repeats))
     if with_torch:
         rt = TreeRenderer(tree, backend="torch")
@@ -87,7 +86,7 @@ def bench_shell(repeats: int) -> dict:
     base = Intrinsics(800, 800, f, f, 399.5, 399.5)
     c2w = look_at(np.array([0.0, -2.4, -0.7]), np.zeros(3), np.array([0.0, 0.0, -1.0]))   # 2.5 radii
     out = {"tree": "opaque shell, depth 7", "leaves_with_data": tree.n_leaves_with_data(),
-           "threads": numba.get_num_threads()}
+           "threads": r.threads}
     out.update(speeds(r, c2w, base, repeats))
     return out
 

@@ -17,7 +17,11 @@ add ``dbb_colour_activation`` (``"sigmoid"``) and ``dbb_density_units`` keys; sv
 from __future__ import annotations
 
 import io
+import itertools
 import math
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -225,6 +229,16 @@ def bake(field: VoxelField, depth: int | None = None, alpha_min: float = 0.02, m
 # ---- rendering --------------------------------------------------------------------------------
 
 BRICK = 8   # leaves per brick side in the renderer's two-level lookup
+_RAY_CHUNK = 4096   # rays per work item of the CPU renderer's threads (64 8x8 tiles)
+_POOL: ThreadPoolExecutor | None = None
+
+
+def _pool(threads: int) -> ThreadPoolExecutor:
+    """The process's render threads (grown on demand, never shrunk)."""
+    global _POOL
+    if _POOL is None or _POOL._max_workers < threads:
+        _POOL = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="dbb-octree")
+    return _POOL
 
 
 def leaf_cells(tree: PlenOctree) -> tuple[np.ndarray, np.ndarray]:
@@ -285,7 +299,8 @@ class TreeRenderer:
     """
 
     def __init__(self, tree: PlenOctree, device: torch.device | str = "cpu", t_min: float = 1e-3,
-                 chunk_samples: int = 48, backend: str = "auto", step: float = 0.5, w_min: float = 1e-3):
+                 chunk_samples: int = 48, backend: str = "auto", step: float = 0.5, w_min: float = 1e-3,
+                 threads: int | None = None):
         if tree.colour_activation not in ("sigmoid", "relu_shift"):
             raise DbbError(f"unknown colour activation {tree.colour_activation!r}")
         self.tree = tree
@@ -297,6 +312,8 @@ class TreeRenderer:
         self.backend = backend
         self.t_min = t_min
         self._w_eps = w_min
+        self.threads = int(threads) if threads else len(os.sched_getaffinity(0))
+        self._lock = threading.Lock()
         self.K = chunk_samples
         self.step = float(step)
         self.L = 1 << (tree.depth_limit + 1)
@@ -368,30 +385,46 @@ class TreeRenderer:
     def _trace_np(self, origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Premultiplied RGB (N, 3) and alpha (N,) with the numba kernel; ``dirs`` (N, 3) unit
         directions turned to world by ``rot`` (3, 3), ``origins`` (1 or N, 3) world. With one
-        origin (a camera), leaf colours are cached per frame."""
-        import numba
+        origin (a camera), leaf colours are cached per frame.
 
+        Ranges of ``_RAY_CHUNK`` rays go to ``self.threads`` threads, each pulling the next
+        range when it is done, so a thread that the OS pauses does not hold the frame up.
+        """
         from .octree_cpu import HALF_SCALE, trace_rays
 
         n = dirs.shape[0]
         rgb = np.empty((n, 3), np.float32)
         alpha = np.empty(n, np.float32)
         g = self._np
-        n_thr = numba.get_num_threads()
+        workers = max(1, min(self.threads, -(-n // _RAY_CHUNK)))
         frame = 0
-        cache, stamp = np.zeros((1, 1, 3), np.float32), np.zeros((1, 1), np.int32)
+        cache, stamp = np.zeros((workers, 1, 3), np.float32), np.zeros((workers, 1), np.int32)
         if origins.shape[0] == 1:
             k = g["coef"].shape[0]
-            if self._colour_cache is None or self._colour_cache[1].shape[0] < n_thr:
-                self._colour_cache = (np.zeros((n_thr, k, 3), np.float32), np.zeros((n_thr, k), np.int32))
+            if self._colour_cache is None or self._colour_cache[1].shape[0] < workers:
+                self._colour_cache = (np.zeros((workers, k, 3), np.float32), np.zeros((workers, k), np.int32))
                 self._frame = 0
             self._frame = self._frame % (2 ** 31 - 2) + 1
             frame = self._frame
             cache, stamp = self._colour_cache
-        trace_rays(np.ascontiguousarray(origins, np.float64), np.ascontiguousarray(dirs, np.float32),
-                   np.ascontiguousarray(rot, np.float64), self.inv, self.offset, g["L"], g["lo"], g["hi"],
-                   g["blocks"], g["nblk"], g["bricks"], g["nbrk"], g["table"], g["dens"], g["coef"], HALF_SCALE,
-                   g["degree"], g["sigmoid"], float(self.t_min), self._w_eps, n_thr, frame, cache, stamp, rgb, alpha)
+        args = (np.ascontiguousarray(origins, np.float64), np.ascontiguousarray(dirs, np.float32),
+                np.ascontiguousarray(rot, np.float64), self.inv, self.offset, g["L"], g["lo"], g["hi"],
+                g["blocks"], g["nblk"], g["bricks"], g["nbrk"], g["table"], g["dens"], g["coef"], HALF_SCALE,
+                g["degree"], g["sigmoid"], float(self.t_min), self._w_eps)
+        starts = itertools.count(0, _RAY_CHUNK)
+
+        def work(slot: int) -> None:
+            for s in starts:                 # next() on a count is atomic under the GIL
+                if s >= n:
+                    return
+                trace_rays(*args, s, min(n, s + _RAY_CHUNK), slot, frame, cache, stamp, rgb, alpha)
+
+        with self._lock:                     # the colour cache is per renderer
+            if workers == 1:
+                work(0)
+            else:
+                for f in [_pool(self.threads).submit(work, i) for i in range(workers)]:
+                    f.result()
         return rgb, alpha
 
     def _camera_dirs(self, intr) -> tuple[np.ndarray, np.ndarray]:

@@ -5,8 +5,8 @@ crosses over a length ``s`` (world units) contributes ``alpha = 1 - exp(-sigma *
 Empty space is skipped at two coarser levels: 32^3-leaf blocks (a dense byte grid) and
 8^3-leaf bricks (the brick grid the leaf table is indexed through). Every step recomputes
 the cell from a point nudged just past the current ``t``, so the walk never drifts off the
-lattice through rounding. Rays run in parallel over the cores (``prange``) in interleaved
-blocks, so a thread does not end up with all the empty sky.
+lattice through rounding. The kernel releases the GIL; the caller runs ray ranges on
+Python threads that pull work as they free up (dynamic balance on a shared machine).
 """
 
 from __future__ import annotations
@@ -20,7 +20,6 @@ from .fields import _C0, _C1, _C2, _C3
 
 BRICK_SHIFT = 3      # 8^3 leaves per brick (the leaf table's unit)
 BLOCK_SHIFT = 5      # 32^3 leaves per skip block
-RAYS_PER_TASK = 64
 _FAR = 1e30          # 1 / direction component when that component is ~0
 
 # No nnan/ninf: exits of axis-parallel rays are huge finite numbers and must compare right.
@@ -99,14 +98,16 @@ def _box_exit(cx: int, cy: int, cz: int, size: float, px: float, py: float, pz: 
     return min(tx, min(ty, tz))
 
 
-@numba.njit(cache=True, fastmath=_FM, parallel=True)
+@numba.njit(cache=True, fastmath=_FM, nogil=True)
 def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.ndarray, offset: np.ndarray,
                L: int, lo: np.ndarray, hi: np.ndarray, blocks: np.ndarray, nblk: int, bricks: np.ndarray,
                nbrk: int, table: np.ndarray, dens: np.ndarray, coef: np.ndarray, p2: np.ndarray, degree: int,
                sigmoid: bool,
-               t_min: float, w_eps: float, n_thr: int, frame: int, cache: np.ndarray, stamp: np.ndarray,
+               t_min: float, w_eps: float, start: int, end: int, slot: int, frame: int, cache: np.ndarray,
+               stamp: np.ndarray,
                rgb: np.ndarray, alpha: np.ndarray) -> None:
-    """Premultiplied RGB into ``rgb`` (N, 3) and alpha into ``alpha`` (N,) for N rays.
+    """Premultiplied RGB into ``rgb`` (N, 3) and alpha into ``alpha`` (N,) of rays ``start``
+    to ``end`` (releases the GIL: Python threads run disjoint ranges side by side).
 
     ``origins`` (1 or N, 3) world; ``dirs`` (N, 3) unit, turned to world by ``rot`` (3, 3);
     the tree maps world x to lattice ``(offset + x * inv) * L``. ``lo``/``hi`` (3,) bound the
@@ -115,133 +116,129 @@ def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.n
     (n_bricks * 512,) the data row of each leaf (-1 empty), ``dens`` (n_bricks * 512,) its density per world unit (0 empty) and
     ``coef`` (K, >= 3 * B) uint16 the float16 bits of each row's SH coefficients (rows
     padded to whole cache lines: one miss fetches a leaf's colour), ``p2`` :data:`HALF_SCALE`. Rays stop once transmittance < ``t_min``;
-    colour is evaluated only where the sample weight exceeds ``w_eps``. ``n_thr`` threads
-    share the rays (passed in: asking numba inside would keep the kernel from being cached).
-    ``frame`` > 0 (only with one origin) turns on the per-thread leaf colour cache ``cache``
-    (n_thr, K, 3) float32, valid where ``stamp`` (n_thr, K) int32 equals ``frame``.
+    colour is evaluated only where the sample weight exceeds ``w_eps``.
+    ``frame`` > 0 (only with one origin) turns on the leaf colour cache ``cache[slot]``
+    (K, 3) float32, valid where ``stamp[slot]`` (K,) int32 equals ``frame``; each thread
+    owns a slot.
     """
-    n = dirs.shape[0]
     nb = (degree + 1) * (degree + 1)
-    n_tasks = (n + RAYS_PER_TASK - 1) // RAYS_PER_TASK
     bsz = float(1 << BLOCK_SHIFT)
     rsz = float(1 << BRICK_SHIFT)
-    for th in numba.prange(n_thr):
-        shb = np.zeros(16)
-        for task in range(th, n_tasks, n_thr):
-            for r in range(task * RAYS_PER_TASK, min(n, (task + 1) * RAYS_PER_TASK)):
-                rgb[r, 0] = 0.0
-                rgb[r, 1] = 0.0
-                rgb[r, 2] = 0.0
-                alpha[r] = 0.0
-                oi = r if origins.shape[0] > 1 else 0
-                wx = rot[0, 0] * dirs[r, 0] + rot[0, 1] * dirs[r, 1] + rot[0, 2] * dirs[r, 2]
-                wy = rot[1, 0] * dirs[r, 0] + rot[1, 1] * dirs[r, 1] + rot[1, 2] * dirs[r, 2]
-                wz = rot[2, 0] * dirs[r, 0] + rot[2, 1] * dirs[r, 1] + rot[2, 2] * dirs[r, 2]
-                px = (offset[0] + origins[oi, 0] * inv[0]) * L
-                py = (offset[1] + origins[oi, 1] * inv[1]) * L
-                pz = (offset[2] + origins[oi, 2] * inv[2]) * L
-                dx, dy, dz = wx * inv[0] * L, wy * inv[1] * L, wz * inv[2] * L
-                ix = 1.0 / dx if abs(dx) > 1e-12 else _FAR
-                iy = 1.0 / dy if abs(dy) > 1e-12 else _FAR
-                iz = 1.0 / dz if abs(dz) > 1e-12 else _FAR
-                hx, hy, hz = int(dx >= 0), int(dy >= 0), int(dz >= 0)
-                sx, sy, sz = abs(ix), abs(iy), abs(iz)       # t per leaf along each axis
-                # Clip to the occupied leaves' box.
-                ax, bx = (lo[0] - px) * ix, (hi[0] - px) * ix
-                ay, by = (lo[1] - py) * iy, (hi[1] - py) * iy
-                az, bz = (lo[2] - pz) * iz, (hi[2] - pz) * iz
-                t = max(0.0, max(min(ax, bx), max(min(ay, by), min(az, bz))))
-                t_end = min(max(ax, bx), min(max(ay, by), max(az, bz)))
-                if not t < t_end:
-                    continue
-                eps = 1e-4 / math.sqrt(dx * dx + dy * dy + dz * dz)   # a 1e-4 leaf nudge
-                T = 1.0
-                cr = 0.0
-                cg = 0.0
-                cb = 0.0
-                basis_ready = False
-                w_sum = 0.0
-                done = False
-                while t < t_end and not done:
-                    tt = t + eps
-                    cx = min(max(int(math.floor(px + tt * dx)), 0), L - 1)
-                    cy = min(max(int(math.floor(py + tt * dy)), 0), L - 1)
-                    cz = min(max(int(math.floor(pz + tt * dz)), 0), L - 1)
-                    kx, ky, kz = cx >> BLOCK_SHIFT, cy >> BLOCK_SHIFT, cz >> BLOCK_SHIFT
-                    if blocks[(kx * nblk + ky) * nblk + kz] == 0:
-                        t = max(_box_exit(kx, ky, kz, bsz, px, py, pz, hx, hy, hz, ix, iy, iz), tt)
-                        continue
-                    kx, ky, kz = cx >> BRICK_SHIFT, cy >> BRICK_SHIFT, cz >> BRICK_SHIFT
-                    brick = bricks[(kx * nbrk + ky) * nbrk + kz]
-                    if brick < 0:
-                        t = max(_box_exit(kx, ky, kz, rsz, px, py, pz, hx, hy, hz, ix, iy, iz), tt)
-                        continue
-                    # Occupied brick: walk its leaves incrementally (Amanatides-Woo).
-                    base = brick << 9
-                    lx, ly, lz = cx & 7, cy & 7, cz & 7
-                    mx = ((cx + hx) - px) * ix
-                    my = ((cy + hy) - py) * iy
-                    mz = ((cz + hz) - pz) * iz
-                    while True:
-                        tn = min(mx, min(my, mz))
-                        local = base | (lx << 6) | (ly << 3) | lz
-                        sg = dens[local]
-                        if sg > 0:
-                            a = 1.0 - _exp_neg(sg * (min(tn, t_end) - t))
-                            w = T * a
-                            if w > w_eps:
-                                row = table[local]
-                                if frame > 0:
-                                    # One camera centre: colour a leaf once per frame, along
-                                    # the direction to its centre (within a leaf's angle of
-                                    # every ray through it), and reuse it for later rays.
-                                    if stamp[th, row] == frame:
-                                        v0, v1, v2 = cache[th, row, 0], cache[th, row, 1], cache[th, row, 2]
-                                    else:
-                                        ex = ((kx << 3) + lx + 0.5 - px) / (inv[0] * L)
-                                        ey = ((ky << 3) + ly + 0.5 - py) / (inv[1] * L)
-                                        ez = ((kz << 3) + lz + 0.5 - pz) / (inv[2] * L)
-                                        en = 1.0 / max(math.sqrt(ex * ex + ey * ey + ez * ez), 1e-12)
-                                        _sh_basis(ex * en, ey * en, ez * en, degree, shb)
-                                        v0, v1, v2 = _colour(coef, row, shb, nb, sigmoid, p2)
-                                        cache[th, row, 0] = v0
-                                        cache[th, row, 1] = v1
-                                        cache[th, row, 2] = v2
-                                        stamp[th, row] = frame
-                                else:
-                                    if not basis_ready:
-                                        _sh_basis(wx, wy, wz, degree, shb)
-                                        basis_ready = True
-                                    v0, v1, v2 = _colour(coef, row, shb, nb, sigmoid, p2)
-                                cr += w * v0
-                                cg += w * v1
-                                cb += w * v2
-                                w_sum += w
-                            T *= 1.0 - a
-                            if T < t_min:
-                                done = True
-                                break
-                        t = max(tn, t)
-                        if t >= t_end:
-                            break
-                        if mx <= my and mx <= mz:
-                            lx += 2 * hx - 1
-                            mx += sx
-                            if lx < 0 or lx > 7:
-                                break
-                        elif my <= mz:
-                            ly += 2 * hy - 1
-                            my += sy
-                            if ly < 0 or ly > 7:
-                                break
+    shb = np.zeros(16)
+    for r in range(start, end):
+        rgb[r, 0] = 0.0
+        rgb[r, 1] = 0.0
+        rgb[r, 2] = 0.0
+        alpha[r] = 0.0
+        oi = r if origins.shape[0] > 1 else 0
+        wx = rot[0, 0] * dirs[r, 0] + rot[0, 1] * dirs[r, 1] + rot[0, 2] * dirs[r, 2]
+        wy = rot[1, 0] * dirs[r, 0] + rot[1, 1] * dirs[r, 1] + rot[1, 2] * dirs[r, 2]
+        wz = rot[2, 0] * dirs[r, 0] + rot[2, 1] * dirs[r, 1] + rot[2, 2] * dirs[r, 2]
+        px = (offset[0] + origins[oi, 0] * inv[0]) * L
+        py = (offset[1] + origins[oi, 1] * inv[1]) * L
+        pz = (offset[2] + origins[oi, 2] * inv[2]) * L
+        dx, dy, dz = wx * inv[0] * L, wy * inv[1] * L, wz * inv[2] * L
+        ix = 1.0 / dx if abs(dx) > 1e-12 else _FAR
+        iy = 1.0 / dy if abs(dy) > 1e-12 else _FAR
+        iz = 1.0 / dz if abs(dz) > 1e-12 else _FAR
+        hx, hy, hz = int(dx >= 0), int(dy >= 0), int(dz >= 0)
+        sx, sy, sz = abs(ix), abs(iy), abs(iz)       # t per leaf along each axis
+        # Clip to the occupied leaves' box.
+        ax, bx = (lo[0] - px) * ix, (hi[0] - px) * ix
+        ay, by = (lo[1] - py) * iy, (hi[1] - py) * iy
+        az, bz = (lo[2] - pz) * iz, (hi[2] - pz) * iz
+        t = max(0.0, max(min(ax, bx), max(min(ay, by), min(az, bz))))
+        t_end = min(max(ax, bx), min(max(ay, by), max(az, bz)))
+        if not t < t_end:
+            continue
+        eps = 1e-4 / math.sqrt(dx * dx + dy * dy + dz * dz)   # a 1e-4 leaf nudge
+        T = 1.0
+        cr = 0.0
+        cg = 0.0
+        cb = 0.0
+        basis_ready = False
+        w_sum = 0.0
+        done = False
+        while t < t_end and not done:
+            tt = t + eps
+            cx = min(max(int(math.floor(px + tt * dx)), 0), L - 1)
+            cy = min(max(int(math.floor(py + tt * dy)), 0), L - 1)
+            cz = min(max(int(math.floor(pz + tt * dz)), 0), L - 1)
+            kx, ky, kz = cx >> BLOCK_SHIFT, cy >> BLOCK_SHIFT, cz >> BLOCK_SHIFT
+            if blocks[(kx * nblk + ky) * nblk + kz] == 0:
+                t = max(_box_exit(kx, ky, kz, bsz, px, py, pz, hx, hy, hz, ix, iy, iz), tt)
+                continue
+            kx, ky, kz = cx >> BRICK_SHIFT, cy >> BRICK_SHIFT, cz >> BRICK_SHIFT
+            brick = bricks[(kx * nbrk + ky) * nbrk + kz]
+            if brick < 0:
+                t = max(_box_exit(kx, ky, kz, rsz, px, py, pz, hx, hy, hz, ix, iy, iz), tt)
+                continue
+            # Occupied brick: walk its leaves incrementally (Amanatides-Woo).
+            base = brick << 9
+            lx, ly, lz = cx & 7, cy & 7, cz & 7
+            mx = ((cx + hx) - px) * ix
+            my = ((cy + hy) - py) * iy
+            mz = ((cz + hz) - pz) * iz
+            while True:
+                tn = min(mx, min(my, mz))
+                local = base | (lx << 6) | (ly << 3) | lz
+                sg = dens[local]
+                if sg > 0:
+                    a = 1.0 - _exp_neg(sg * (min(tn, t_end) - t))
+                    w = T * a
+                    if w > w_eps:
+                        row = table[local]
+                        if frame > 0:
+                            # One camera centre: colour a leaf once per frame, along
+                            # the direction to its centre (within a leaf's angle of
+                            # every ray through it), and reuse it for later rays.
+                            if stamp[slot, row] == frame:
+                                v0, v1, v2 = cache[slot, row, 0], cache[slot, row, 1], cache[slot, row, 2]
+                            else:
+                                ex = ((kx << 3) + lx + 0.5 - px) / (inv[0] * L)
+                                ey = ((ky << 3) + ly + 0.5 - py) / (inv[1] * L)
+                                ez = ((kz << 3) + lz + 0.5 - pz) / (inv[2] * L)
+                                en = 1.0 / max(math.sqrt(ex * ex + ey * ey + ez * ez), 1e-12)
+                                _sh_basis(ex * en, ey * en, ez * en, degree, shb)
+                                v0, v1, v2 = _colour(coef, row, shb, nb, sigmoid, p2)
+                                cache[slot, row, 0] = v0
+                                cache[slot, row, 1] = v1
+                                cache[slot, row, 2] = v2
+                                stamp[slot, row] = frame
                         else:
-                            lz += 2 * hz - 1
-                            mz += sz
-                            if lz < 0 or lz > 7:
-                                break
-                # The weight of skipped samples goes to the evaluated ones in proportion.
-                scale = (1.0 - T) / w_sum if w_sum > 0 else 0.0
-                rgb[r, 0] = cr * scale
-                rgb[r, 1] = cg * scale
-                rgb[r, 2] = cb * scale
-                alpha[r] = 1.0 - T
+                            if not basis_ready:
+                                _sh_basis(wx, wy, wz, degree, shb)
+                                basis_ready = True
+                            v0, v1, v2 = _colour(coef, row, shb, nb, sigmoid, p2)
+                        cr += w * v0
+                        cg += w * v1
+                        cb += w * v2
+                        w_sum += w
+                    T *= 1.0 - a
+                    if T < t_min:
+                        done = True
+                        break
+                t = max(tn, t)
+                if t >= t_end:
+                    break
+                if mx <= my and mx <= mz:
+                    lx += 2 * hx - 1
+                    mx += sx
+                    if lx < 0 or lx > 7:
+                        break
+                elif my <= mz:
+                    ly += 2 * hy - 1
+                    my += sy
+                    if ly < 0 or ly > 7:
+                        break
+                else:
+                    lz += 2 * hz - 1
+                    mz += sz
+                    if lz < 0 or lz > 7:
+                        break
+        # The weight of skipped samples goes to the evaluated ones in proportion.
+        scale = (1.0 - T) / w_sum if w_sum > 0 else 0.0
+        rgb[r, 0] = cr * scale
+        rgb[r, 1] = cg * scale
+        rgb[r, 2] = cb * scale
+        alpha[r] = 1.0 - T
