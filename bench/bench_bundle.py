@@ -2,7 +2,7 @@
 against the training run's renders, verify against a flipped byte. Figures go to docs/benchmarks.md.
 
     python bench/bench_bundle.py static RUN OUT [--capture CAPTURE | --seed 0]
-    python bench/bench_bundle.py dynamic RUN OUT
+    python bench/bench_bundle.py dynamic RUN OUT [--seed 0]
 
 ``static``: RUN is a ``dbb-train plenoctree`` run of a synthetic static object; the true shape is
 the object model of ``--capture`` (``dbb-capture synth`` ground truth) or, by default, the object
@@ -133,7 +133,28 @@ def bench_static(run: Path, out: Path, capture: Path | None, seed: int, res: int
             "flipped_byte": flipped_byte_caught(out / "bundle", out)}
 
 
-def bench_dynamic(run: Path, out: Path) -> dict:
+def hull_iou(m, bundle: Path, times: np.ndarray, seed: int, res: int) -> dict:
+    """IoU of the proxy with the synthetic dynamic toy (``rssm.synthetic_crops``' object, ``seed``):
+    against what it occupies in >= 90 % of the frame times (what the carving keeps), and at t = 0."""
+    from dbb_capture.synth import SynthConfig, make_object
+
+    model = make_object("dynamic", SynthConfig().board, np.random.default_rng(seed))
+    c, r = m.center, m.radius
+    ax = (np.arange(res) + 0.5) / res * 2 - 1
+    P = c + r * np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    col = read_glb(bundle / m.proxy_mesh["file"])["proxy-colonly"]
+    mine = mesh_occupancy(transform_points(np.linalg.inv(m.T), np.asarray(col.vertices)), np.asarray(col.faces), P)
+    ts = times[:: max(1, len(times) // 60)]
+    frac = np.mean([true_occupancy(model, float(t), P) for t in ts], axis=0)
+
+    def iou(a, b):
+        return round(float((a & b).sum() / max(1, (a | b).sum())), 4)
+
+    return {"iou_vs_occupied_90pct_of_time": iou(mine, frac >= 0.9), "iou_vs_t0": iou(mine, true_occupancy(model, 0.0, P)),
+            "times_sampled": len(ts), "grid": f"{res}^3 over the object cube"}
+
+
+def bench_dynamic(run: Path, out: Path, seed: int | None, res: int) -> dict:
     from dbb_capture.rssm import rollout
 
     out.mkdir(parents=True, exist_ok=True)
@@ -142,6 +163,7 @@ def bench_dynamic(run: Path, out: Path) -> dict:
     bundle_s = time.perf_counter() - t
     meta = json.loads((run / "run.json").read_text())
     doc = json.loads((Path(meta["dataset"]) / "crops.json").read_text())
+    times = np.array([f["time"] for f in doc["frames"]])
     doc["frames"] = doc["frames"][:24]
     (out / "cameras.json").write_text(json.dumps(doc))
     t = time.perf_counter()
@@ -166,6 +188,7 @@ def bench_dynamic(run: Path, out: Path) -> dict:
     checks = B.verify_bundle(out / "bundle")
     verify_s = time.perf_counter() - t
     return {"run": str(run), "bundle_seconds": round(bundle_s, 1), "proxy": m.proxy_mesh,
+            "proxy_vs_truth": hull_iou(m, out / "bundle", times, seed, res) if seed is not None else None,
             "renders": len(rows), "render_seconds": round(render_s, 2),
             "psnr_bundle_vs_run_min": round(min(rows), 2) if all(map(math.isfinite, rows)) else None,
             "verify_seconds": round(verify_s, 1), "verify": checks,
@@ -178,12 +201,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("run", type=Path)
     ap.add_argument("out", type=Path)
     ap.add_argument("--capture", type=Path, default=None, help="synthetic capture whose ground truth is the shape")
-    ap.add_argument("--seed", type=int, default=0, help="seed of bench_plenoctree's synthetic object")
+    ap.add_argument("--seed", type=int, default=None,
+                    help="seed of the synthetic object: bench_plenoctree's static one (default 0), or "
+                         "rssm.synthetic_crops' dynamic toy (dynamic: IoU of the visual hull only when given)")
     ap.add_argument("--res", type=int, default=128, help="voxels per axis for the IoU")
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args(argv)
-    res = (bench_static(a.run, a.out, a.capture, a.seed, a.res) if a.part == "static"
-           else bench_dynamic(a.run, a.out))
+    res = (bench_static(a.run, a.out, a.capture, a.seed or 0, a.res) if a.part == "static"
+           else bench_dynamic(a.run, a.out, a.seed, a.res))
     text = json.dumps(res, indent=2)
     print(text)
     if a.json:
