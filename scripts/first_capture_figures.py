@@ -125,9 +125,9 @@ def _bundle_figures(out: Path, bundle: Path) -> list[Path]:
         sheet = B.read_rgba(b.file(m.previews["sheet"]["file"]))
         cv2.imwrite(str(out / "bundle_sheet.jpg"), cv2.cvtColor(B.over_checker(sheet), cv2.COLOR_RGB2BGR))
         S, cols = int(m.previews["cell_px"]), int(m.previews["sheet"]["columns"])
-        a, e, d = m.previews["sheet"]["views"][1]
+        a, e, d = m.previews["sheet"]["views"][0]
         view = B.orbit_view("v", m.T, m.radius, a, e, d)
-        cell = B.over_checker(B.cell(sheet, 1, cols, S))
+        cell = B.over_checker(B.cell(sheet, 0, cols, S))
         col = read_glb(b.file(m.proxy_mesh["file"]))["proxy-colonly"]
         v_board = transform_points(np.linalg.inv(m.T), np.asarray(col.vertices))
         from dbb_capture.cameras import project_points
