@@ -1,0 +1,194 @@
+"""Background removal and crops against synthetic ground truth, and per-frame throughput.
+
+Quality (``quality``): runs ``dbb-capture preprocess`` on synthetic captures (the sample
+captures by default: static and dynamic, 640x480, with clean plates), once with the clean
+plate and once without (``--no-clean-plate``), then scores every crop against the truth:
+- alpha IoU with the true object mask cut through the same crop camera (median over frames);
+- where the true object centre lands in the crop (px, scaled to a 64 px crop);
+- the true sphere's projected radius across frames (max deviation from the median, %);
+- the angle between the object's true up and the crop's up (degrees).
+Truth is mapped into each crop through the *estimated* camera, so pose errors count.
+
+Speed (``speed``): a 1920x1440 capture with a 15 s clean plate; times the background stage
+(pose the plate, cut training crops, plane sweep, train) and then the per-frame work on the
+object video: detect + pose, crop, background render, matte (one process, and the rate two
+processes would give since frames are independent).
+
+    flock /tmp/dbb-bench.lock .venv/bin/python bench/bench_preprocess.py quality --work /tmp/dbb-bench-pre
+    flock /tmp/dbb-bench.lock .venv/bin/python bench/bench_preprocess.py speed --work /tmp/dbb-bench-pre
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from dbb_capture.cameras import Intrinsics, camera_rays, opencv_from_opengl, project_points
+from dbb_capture.crops import crop_maps
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _cam_from_frame(fr: dict):
+    from dbb_capture.crops import CropCamera, Viewpoint
+
+    intr = Intrinsics(fr["w"], fr["h"], fr["fl_x"], fr["fl_y"], fr["cx"], fr["cy"])
+    vp = Viewpoint(**fr["viewpoint"])
+    return CropCamera(intr, opencv_from_opengl(np.array(fr["transform_matrix"])), vp, 0.0)
+
+
+def to_crop(uv: np.ndarray, intr: Intrinsics, c2w: np.ndarray, cam) -> np.ndarray:
+    """Source pixels (N, 2) of a camera (``intr`` with distortion, OpenCV ``c2w``) -> crop pixels (N, 2)."""
+    d = camera_rays(intr, uv) @ c2w[:3, :3].T @ cam.c2w[:3, :3]
+    return np.stack([cam.intr.fx * d[:, 0] / d[:, 2] + cam.intr.cx, cam.intr.fy * d[:, 1] / d[:, 2] + cam.intr.cy], 1)
+
+
+def score(capture: Path, dataset: Path) -> dict:
+    gt_intr = Intrinsics.load(capture / "ground_truth" / "camera.json")
+    gt = json.loads((capture / "ground_truth" / "cameras.json").read_text())["video"]
+    obj = json.loads((capture / "object.json").read_text())
+    center, radius = np.array(obj["center"]), obj["radius"]
+    up = np.array([0.0, 0.0, -1.0])  # synth lays the board face up with the cameras above (-z)
+    est_intr = Intrinsics.load(dataset / "camera.json")
+    crops = json.loads((dataset / "crops.json").read_text())
+    ious, centre_px, radii, up_deg = [], [], [], []
+    for fr in crops["frames"]:
+        cam = _cam_from_frame(fr)
+        i = fr["source_frame"]
+        c2w_true = opencv_from_opengl(np.array(gt[i]["transform_matrix"]))
+        size = cam.intr.width
+        mask = cv2.imread(str(capture / "ground_truth" / "masks" / f"{i:05d}.png"), cv2.IMREAD_GRAYSCALE)
+        mx, my = crop_maps(cam, gt_intr, c2w_true, 1)
+        truth = cv2.remap(mask, mx, my, cv2.INTER_LINEAR) > 127
+        alpha = cv2.imread(str(dataset / fr["file_path"]), cv2.IMREAD_UNCHANGED)[..., 3] > 127
+        ious.append((truth & alpha).sum() / max((truth | alpha).sum(), 1))
+        uv_true = project_points(np.stack([center, center + 0.02 * up]), c2w_true, gt_intr)
+        # Pixels of the real image map to the crop through the camera preprocessing estimated.
+        src = _estimated_c2w(dataset, fr)
+        p = to_crop(uv_true, est_intr, src, cam)
+        c = (size - 1) / 2
+        centre_px.append(float(np.linalg.norm(p[0] - c)) * 64 / size)
+        v = p[1] - p[0]
+        up_deg.append(abs(math.degrees(math.atan2(v[0], -v[1]))))
+        D = float(np.linalg.norm(c2w_true[:3, 3] - center))
+        radii.append(cam.intr.fx * math.tan(math.asin(radius / D)))
+    radii = np.array(radii)
+    return {"crops": len(ious), "iou_median": float(np.median(ious)), "iou_p10": float(np.percentile(ious, 10)),
+            "centre_px64_median": float(np.median(centre_px)), "centre_px64_max": float(np.max(centre_px)),
+            "radius_dev_pct": float(np.abs(radii / np.median(radii) - 1).max() * 100),
+            "up_deg_median": float(np.median(up_deg)), "up_deg_max": float(np.max(up_deg))}
+
+
+_TRANSFORMS: dict = {}
+
+
+def _estimated_c2w(dataset: Path, fr: dict) -> np.ndarray:
+    """The estimated pose of the frame a crop was cut from (transforms.json of the dataset)."""
+    if dataset not in _TRANSFORMS:
+        tf = json.loads((dataset / "transforms.json").read_text())
+        _TRANSFORMS[dataset] = {round(f["time"], 4): opencv_from_opengl(np.array(f["transform_matrix"]))
+                                for f in tf["frames"]}
+    return _TRANSFORMS[dataset][round(fr["time"], 4)]
+
+
+def run_preprocess(capture: Path, out: Path, *args: str) -> float:
+    t = time.monotonic()
+    cmd = [str(REPO / ".venv" / "bin" / "dbb-capture"), "preprocess", str(capture), "-o", str(out), "--overwrite",
+           *args]
+    subprocess.run(cmd, check=True)
+    return time.monotonic() - t
+
+
+def quality(work: Path, captures: list[Path], minutes: float) -> None:
+    rows = []
+    for cap in captures:
+        for plate in (True, False):
+            name = f"{cap.name}-{'plate' if plate else 'noplate'}"
+            out = work / name
+            secs = run_preprocess(cap, out, "--background-minutes", str(minutes),
+                                  *([] if plate else ["--no-clean-plate"]))
+            s = score(cap, out)
+            bg = json.loads((out / "dataset.json").read_text())["background"]
+            rows.append((name, s, secs, bg))
+            print(name, json.dumps(s), f"{secs:.0f}s", bg, flush=True)
+    print("\n| capture | background | crops | alpha IoU median (p10) | centre error px@64 median / max | "
+          "radius deviation max | up error median / max | preprocess time |")
+    print("|---|---|---|---|---|---|---|---|")
+    for name, s, secs, bg in rows:
+        print(f"| {name.split('-')[0]} | {bg['mode']}, {bg['steps']} steps | {s['crops']} | {s['iou_median']:.3f} "
+              f"({s['iou_p10']:.3f}) | {s['centre_px64_median']:.3f} / {s['centre_px64_max']:.3f} | "
+              f"{s['radius_dev_pct']:.2f}% | {s['up_deg_median']:.3f} / {s['up_deg_max']:.3f} deg | {secs:.0f} s |")
+
+
+def speed(work: Path, minutes: float) -> None:
+    from dbb_capture.background import BackgroundModel
+    from dbb_capture.board import BoardSpec
+    from dbb_capture.crops import object_crop, up_from_cameras
+    from dbb_capture.io import open_footage
+    from dbb_capture.poses import DetectorConfig, detect_frames, pose_frames
+
+    cap = work / "hd"
+    if not (cap / "video.mp4").is_file():
+        subprocess.run([str(REPO / ".venv" / "bin" / "dbb-capture"), "synth", str(cap), "--kind", "static",
+                        "--seconds", "3", "--background-seconds", "15", "--fps", "10", "--resolution", "1920x1440",
+                        "--seed", "31", "--overwrite"], check=True)
+    ds = work / "hd-dataset"
+    t_bg = run_preprocess(cap, ds, "--stop-after", "background", "--background-minutes", str(minutes))
+    rep = json.loads((ds / "background" / "report.json").read_text())
+    model = BackgroundModel.load(ds / "background" / "field.pt")
+    intr = Intrinsics.load(ds / "camera.json")
+    board = BoardSpec.load(cap / "board.json")
+    obj = json.loads((cap / "object.json").read_text())
+    frames = list(open_footage(cap / "video.mp4").read(range(30)))
+    timings = {"pose": 0.0, "crop+render+matte": 0.0}
+    n = 0
+    c2ws = []
+    t_all = time.monotonic()
+    dets = []
+    for f in frames:
+        t = time.monotonic()
+        d = detect_frames([f], board, DetectorConfig())[0]
+        p = pose_frames([d], board, intr)[0]
+        timings["pose"] += time.monotonic() - t
+        dets.append(d)
+        if p.c2w is None:
+            continue
+        c2ws.append(p.c2w)
+        up = up_from_cameras(np.stack(c2ws))
+        t = time.monotonic()
+        object_crop(f.image, intr, p.c2w, np.array(obj["center"]), obj["radius"], up, 64, 0.9, model.render)
+        timings["crop+render+matte"] += time.monotonic() - t
+        n += 1
+    total = time.monotonic() - t_all
+    print(f"background stage (pose {rep['clean_plate']['frames']}-frame clean plate, cut crops, plane sweep, "
+          f"train {minutes} min): {t_bg:.0f} s; {rep['steps']} steps, training PSNR {rep['train_psnr_db']} dB")
+    print(f"per frame at 1920x1440, {n} frames, 1 process: pose {timings['pose'] / len(frames) * 1000:.0f} ms, "
+          f"crop+render+matte {timings['crop+render+matte'] / max(n, 1) * 1000:.0f} ms; "
+          f"{len(frames) / total:.1f} frames/s (2 processes: about {2 * len(frames) / total:.1f})")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("what", choices=["quality", "speed"])
+    ap.add_argument("--work", type=Path, default=Path("/tmp/dbb-bench-pre"))
+    ap.add_argument("--minutes", type=float, default=2.0, help="background field training budget")
+    ap.add_argument("--captures", type=Path, nargs="*",
+                    default=[REPO / "sample_data" / "static", REPO / "sample_data" / "dynamic"])
+    a = ap.parse_args()
+    a.work.mkdir(parents=True, exist_ok=True)
+    if a.what == "quality":
+        quality(a.work, a.captures, a.minutes)
+    else:
+        speed(a.work, a.minutes)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
