@@ -181,6 +181,11 @@ def calibrate(input_path: Path, board_path: Path | None, output: Path, fps: floa
               help="Training budget of the background field.")
 @click.option("--clean-plate/--no-clean-plate", default=True, show_default=True,
               help="Learn the room from the clean plate when there is one (else from the object video).")
+@click.option("--crop-window", type=str, default=None, metavar="X,Y,SIZE",
+              help="Fixed camera without a board: crop this square window (pixels; top-left corner and "
+                   "side) from every frame, background from the temporal median, one constant viewpoint.")
+@click.option("--matte/--no-matte", "fixed_matte", default=True, show_default=True,
+              help="With --crop-window: matte the crops against the background (off: opaque crops).")
 @click.option("--stop-after", type=str, default=None,
               help="Stop after this stage (poses, background, crops) to check its output first.")
 @click.option("--workers", type=click.IntRange(1, 64), default=None,
@@ -190,7 +195,7 @@ def preprocess(capture: Path, output: Path, board_path: Path | None, camera_path
                footage: Path | None, object_path: Path | None, background: Path | None,
                fps: float | None, blur_ratio: float, refine: bool, crop_size: int, crop_fill: float,
                test_fraction: float, sequence_length: int, background_minutes: float, clean_plate: bool,
-               stop_after: str | None, workers: int | None, overwrite: bool) -> None:
+               crop_window: str | None, fixed_matte: bool, stop_after: str | None, workers: int | None, overwrite: bool) -> None:
     """Turn CAPTURE into a dataset in OUTPUT: poses, background field, mattes and RGBA crops.
 
     Writes images/ (undistorted frames), transforms.json (with masks/), camera.json,
@@ -202,8 +207,17 @@ def preprocess(capture: Path, output: Path, board_path: Path | None, camera_path
     from dbb_capture.background import BackgroundConfig
     from dbb_capture.preprocess import PreprocessConfig, resolve_capture, run_preprocess
 
-    inputs = resolve_capture(capture, board_path, camera_path, footage, object_path, background)
-    cfg = PreprocessConfig(fps=fps, blur_ratio=blur_ratio, refine=refine,
+    window = None
+    if crop_window is not None:
+        try:
+            window = tuple(int(v) for v in crop_window.split(","))
+            assert len(window) == 3
+        except (ValueError, AssertionError):
+            raise click.BadParameter("expected X,Y,SIZE in pixels, e.g. 200,40,280",
+                                     param_hint="--crop-window") from None
+    inputs = resolve_capture(capture, board_path, camera_path, footage, object_path, background,
+                             need_board=window is None)
+    cfg = PreprocessConfig(fps=fps, blur_ratio=blur_ratio, refine=refine, fixed_window=window, fixed_matte=fixed_matte,
                            workers=_workers(workers), stop_after=stop_after, crop_size=crop_size,
                            crop_fill=crop_fill, test_fraction=test_fraction, sequence_length=sequence_length,
                            use_clean_plate=clean_plate,
@@ -215,7 +229,7 @@ def preprocess(capture: Path, output: Path, board_path: Path | None, camera_path
     what = ""
     if last == "poses":
         what = f"; {len(res.last.images)} posed frames"
-    elif last == "crops":
+    elif last in ("crops", "fixed camera"):
         st = res.last.stats
         what = (f"; {st['crops']} crops ({st['train']} train, {st['test']} test), "
                 f"{st['sequences']['train']} + {st['sequences']['test']} sequences; see dataset.json "

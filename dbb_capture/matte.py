@@ -115,7 +115,9 @@ def matte(observed: np.ndarray, predicted: np.ndarray, disc: np.ndarray,
     d = colour_distance(observed, predicted, cfg.shift_px)
     outside = ~disc
     # Noise level from where no object can be (robust: median absolute distance).
-    noise = float(np.median(d[outside])) / 0.6745 if outside.sum() > 50 else 0.01
+    # Without enough room outside the disc (a fixed window), the whole crop's median stands in:
+    # the room is most of it.
+    noise = float(np.median(d[outside] if outside.sum() > 50 else d)) / 0.6745
     t0 = max(cfg.min_threshold, cfg.low_sigmas * noise)
     t1 = max(t0 * 1.5, cfg.high_sigmas * noise)
     alpha = np.clip((d - t0) / (t1 - t0), 0, 1) * disc

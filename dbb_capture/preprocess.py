@@ -52,7 +52,7 @@ from .formats import (
     write_transforms,
 )
 from .io import FootageSource, R3dSource, capture_footage, open_footage
-from .matte import MatteConfig
+from .matte import MatteConfig, matte
 from .outputs import atomic_dir, read_json, write_json
 from .poses import DetectorConfig, PoseConfig, PoseRun, estimate_poses
 from .progress import progress
@@ -65,7 +65,7 @@ class CaptureInputs:
 
     root: Path
     footage: FootageSource
-    board: BoardSpec
+    board: BoardSpec | None          # None only in fixed-camera mode (no board needed)
     camera: Intrinsics | None
     camera_source: str
     object_json: Path | None
@@ -74,14 +74,16 @@ class CaptureInputs:
 
 def resolve_capture(capture: Path, board: Path | None = None, camera: Path | None = None,
                     footage: Path | None = None, object_json: Path | None = None,
-                    background: Path | None = None) -> CaptureInputs:
+                    background: Path | None = None, need_board: bool = True) -> CaptureInputs:
     """Find the parts of a capture folder (flags override the files inside it)."""
     capture = Path(capture)
     if not capture.is_dir():
         raise InputError(f"capture folder not found: {capture}")
     src = open_footage(footage) if footage else capture_footage(capture)
     src.info  # probe now: unreadable footage fails before any work starts
-    board_spec = BoardSpec.load(board or capture / "board.json")
+    board_spec = None
+    if need_board or board is not None or (capture / "board.json").is_file():
+        board_spec = BoardSpec.load(board or capture / "board.json")
     cam_path = camera or (capture / "camera.json" if (capture / "camera.json").is_file() else None)
     intr, cam_src = None, "calibrated from the footage"
     if cam_path is not None:
@@ -114,6 +116,8 @@ class PreprocessConfig:
     test_fraction: float = 0.2
     sequence_length: int = 11
     use_clean_plate: bool = True          # False: learn the room from the object video even if a plate exists
+    fixed_window: tuple[int, int, int] | None = None   # fixed camera: crop window (x, y, side) in pixels
+    fixed_matte: bool = True              # fixed camera: matte against the background (False: opaque crops)
     background: BackgroundConfig = BackgroundConfig()
     matte: MatteConfig = MatteConfig()
 
@@ -397,13 +401,19 @@ def _write_png(path: Path, img: np.ndarray) -> None:
         raise DbbError(f"cannot write {path}")
 
 
-def _sheet_row(frame: np.ndarray, intr: Intrinsics, c2w: np.ndarray, center: np.ndarray, oc: ObjectCrop,
-               prev: np.ndarray | None, cell: int = 128) -> np.ndarray:
-    """frame (crop window drawn) | observed crop | predicted background | alpha | RGBA | dx, (cell, W, 3)."""
+def _sheet_row(frame: np.ndarray, intr: Intrinsics | None, c2w: np.ndarray | None, center: np.ndarray | None,
+               oc: ObjectCrop, prev: np.ndarray | None, cell: int = 128,
+               window: tuple[int, int, int] | None = None) -> np.ndarray:
+    """frame (crop window drawn) | observed crop | predicted background | alpha | RGBA | dx, (cell, W, 3).
+
+    The window is where the object centre projects (``intr``, ``c2w``, ``center``), or ``window``."""
     h, w = frame.shape[:2]
     scale = cell / h
     small = cv2.resize(frame, (max(1, round(w * scale)), cell), interpolation=cv2.INTER_AREA)
-    uv = project_points(center[None], c2w, intr)[0] * scale
+    if window is not None:
+        uv = (np.array(window[:2], float) + window[2] / 2) * scale
+    else:
+        uv = project_points(center[None], c2w, intr)[0] * scale
     half = oc.cam.window_px / 2 * scale
     x0, y0 = round(uv[0] - half), round(uv[1] - half)
     x1, y1 = round(uv[0] + half), round(uv[1] + half)
@@ -442,8 +452,124 @@ def dataset_stats(doc: dict, poses: PosesOutput, bg: BackgroundOutput, coverage:
     }
 
 
+# --------------------------------------------------------------------------- fixed camera
+FIXED_HFOV_DEG = 60.0  # nominal field of view given to footage without a board (no metric camera)
+
+
+def fixed_camera_stage(ctx: StageContext, _previous: Any = None) -> CropsOutput:
+    """A fixed camera without a board: one crop window, a constant viewpoint.
+
+    The background is the clean plate when there is one, else the per-pixel temporal median of
+    the footage (for a camera that never moves, what most frames show at a pixel is the room:
+    an object that rests in one place for most of the video is taken for the room, hence the
+    option of opaque crops, ``fixed_matte=False``); each frame's window is matted against it. There is no metric pose: every crop shares one nominal camera (identity pose, a
+    ``FIXED_HFOV_DEG`` field of view) and so one viewpoint; ``crops.json`` says so.
+    """
+    from .crops import CropCamera, viewpoint
+
+    inp, cfg, out = ctx.inputs, ctx.cfg, ctx.out
+    x, y, side = cfg.fixed_window
+    info = inp.footage.info
+    if side < 8 or x >= info.width or y >= info.height or x + side <= 0 or y + side <= 0:
+        raise InputError(f"--crop-window {x},{y},{side} is outside the {info.width}x{info.height} frame")
+    touches = x < 0 or y < 0 or x + side > info.width or y + side > info.height
+    if touches:
+        ctx.notes.append(f"the crop window {x},{y},{side} reaches past the frame's border: padded transparent, "
+                         f"flagged touches_border")
+    step = 1 if cfg.fps is None else max(1, round(info.fps / cfg.fps))
+    indices = list(range(0, info.n_frames, step))
+    with progress(transient=True) as prog:
+        plate_src = open_footage(inp.background) if inp.background is not None else inp.footage
+        if (plate_src.info.width, plate_src.info.height) != (info.width, info.height):
+            raise InputError(f"the clean plate is {plate_src.info.width}x{plate_src.info.height} but the video is "
+                             f"{info.width}x{info.height}")
+        plate_idx = list(range(plate_src.info.n_frames))
+        task = prog.add_task("background: temporal median", total=len(plate_idx), info="")
+        picks = set(plate_idx[::max(1, len(plate_idx) // 150)])
+        stack = []
+        for f in plate_src.read(plate_idx):
+            if f.index in picks:
+                stack.append(_window(f.image, x, y, side))
+            prog.advance(task)
+        plate = np.median(np.stack(stack), axis=0).astype(np.uint8)
+        bg_mode = ("temporal median of the clean plate" if inp.background is not None
+                   else "temporal median of the video")
+        (out / "background").mkdir()
+        _write_png(out / "background" / "median_window.png", cv2.cvtColor(plate, cv2.COLOR_RGB2BGR))
+        size = cfg.crop_size
+        pred = cv2.resize(plate, (size, size), interpolation=cv2.INTER_AREA)
+        inside = cv2.resize(_window(np.full((info.height, info.width, 3), 255, np.uint8), x, y, side), (size, size),
+                            interpolation=cv2.INTER_AREA)[..., 0]
+        f_src = info.width / 2 / np.tan(np.radians(FIXED_HFOV_DEG / 2))
+        f_crop = f_src * size / side
+        # The window's centre ray, and a camera at the origin looking down it (object 1 m away, nominal).
+        ray = np.array([(x + side / 2 - 0.5 - (info.width - 1) / 2) / f_src,
+                        (y + side / 2 - 0.5 - (info.height - 1) / 2) / f_src, 1.0])
+        center = ray / np.linalg.norm(ray)
+        up = np.array([0.0, -1.0, 0.0])
+        c2w = np.eye(4)
+        c = (size - 1) / 2
+        cam = CropCamera(Intrinsics(size, size, f_crop, f_crop, c, c), c2w, viewpoint(np.zeros(3), center, up), side)
+        radius = float(np.sin(np.arctan(side * cfg.crop_fill / 2 / f_src)))
+        (out / "crops").mkdir()
+        splits = split_by_time(np.array([info.times[i] for i in indices]), cfg.test_fraction)
+        records, coverage, sheet, prev = [], [], [], None
+        full = np.ones((size, size), bool)
+        task = prog.add_task("matte and crop", total=len(indices), info="")
+        sheet_at = set(np.linspace(0, len(indices) - 1, min(8, len(indices))).round().astype(int).tolist())
+        for k, f in enumerate(inp.footage.read(indices)):
+            obs = cv2.resize(_window(f.image, x, y, side), (size, size), interpolation=cv2.INTER_AREA)
+            if cfg.fixed_matte:
+                rgba = matte(obs, pred, full, cfg.matte)
+                rgba[..., 3] = np.minimum(rgba[..., 3], inside)
+            else:
+                rgba = np.concatenate([obs, inside[..., None]], -1)
+            rel = f"crops/{f.name}.png"
+            _write_png(out / rel, cv2.cvtColor(rgba, cv2.COLOR_RGBA2BGRA))
+            records.append(CropRecord(rel, cam, f.index, f.time, str(splits[k]), touches))
+            coverage.append(float(rgba[..., 3].mean()) / 255.0)
+            if k in sheet_at:
+                oc = ObjectCrop(cam, obs, pred, rgba, touches)
+                sheet.append(_sheet_row(f.image, None, None, None, oc, prev, window=(x, y, side)))
+            prev = rgba
+            prog.advance(task)
+    doc = crops_json(records, center, radius, up, size, cfg.crop_fill, cfg.sequence_length)
+    doc["note"] = (f"fixed camera, no board: one nominal camera (identity pose, {FIXED_HFOV_DEG:g} deg field of "
+                   f"view, object 1 m away along the window's centre ray) and one constant viewpoint; "
+                   f"crop window {x},{y},{side} px; background: {bg_mode}"
+                   + ("" if cfg.fixed_matte else "; not matted (opaque crops)"))
+    doc["fixed_camera"] = {"window": [x, y, side], "hfov_deg": FIXED_HFOV_DEG}
+    write_json(out / "crops.json", doc)
+    if sheet:
+        _write_png(out / "contact_sheet.png", cv2.cvtColor(np.concatenate(sheet, 0), cv2.COLOR_RGB2BGR))
+    seqs = doc["sequences"]
+    stats = {"mode": "fixed camera", "frames_in_footage": info.n_frames, "crops": len(records),
+             "train": int(sum(r.split == "train" for r in records)), "test": int(sum(r.split == "test" for r in records)),
+             "sequences": {"length": cfg.sequence_length, "train": sum(q["split"] == "train" for q in seqs),
+                           "test": sum(q["split"] == "test" for q in seqs)},
+             "duration_s": round(float(records[-1].time - records[0].time), 3) if records else 0.0,
+             "crop_size": size, "crop_fill": cfg.crop_fill, "touching_border": len(records) if touches else 0,
+             "alpha_coverage_mean": round(float(np.mean(coverage)), 4) if coverage else 0.0,
+             "background": {"mode": bg_mode if cfg.fixed_matte else "none (opaque crops)", "frames": len(stack)}}
+    write_json(out / "dataset.json", stats)
+    write_json(out / "poses" / "report.json", {"mode": "fixed camera", "frames_in_footage": info.n_frames,
+                                                "note": "no board: no poses; one nominal camera"})
+    return CropsOutput(out / "crops.json", tuple(records), stats)
+
+
+def _window(image: np.ndarray, x: int, y: int, side: int) -> np.ndarray:
+    """The square window (side, side, C) of ``image`` at top-left (x, y); outside the frame is black."""
+    h, w = image.shape[:2]
+    out = np.zeros((side, side) + image.shape[2:], image.dtype)
+    x0, y0, x1, y1 = max(x, 0), max(y, 0), min(x + side, w), min(y + side, h)
+    if x1 > x0 and y1 > y0:
+        out[y0 - y:y1 - y, x0 - x:x1 - x] = image[y0:y1, x0:x1]
+    return out
+
+
 STAGES: list[Stage] = [Stage("poses", poses_stage), Stage("background", background_stage),
                        Stage("crops", crops_stage)]
+FIXED_STAGES: list[Stage] = [Stage("fixed camera", fixed_camera_stage)]
 
 
 
@@ -468,10 +594,13 @@ def run_preprocess(inputs: CaptureInputs, out: Path, cfg: PreprocessConfig = Pre
         raise DbbError(f"--stop-after {cfg.stop_after}: unknown stage "
                        f"(expected one of {', '.join(stage_names())})")
     ran: list[str] = []
+    stages = FIXED_STAGES if cfg.fixed_window is not None else STAGES
+    if cfg.fixed_window is None and inputs.board is None:
+        raise InputError(f"{inputs.root}: no board.json (or give --crop-window for a fixed camera without a board)")
     with atomic_dir(Path(out), overwrite=overwrite) as tmp:
         ctx = StageContext(inputs, cfg, tmp)
         record: Any = None
-        for stage in STAGES:
+        for stage in stages:
             record = stage.run(ctx, record)
             ran.append(stage.name)
             if stage.name == cfg.stop_after:
