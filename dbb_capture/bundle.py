@@ -579,7 +579,12 @@ def _created(run: Path, meta: dict) -> dict:
             "training_steps": meta.get("training", {}).get("steps"), "training_seconds": meta.get("training", {}).get("seconds")}
 
 
+_RUN_KEYS = {"static": (("tree", "file"), ("density_grid", "file"), ("object", "center"), ("object", "radius")),
+             "dynamic": (("stepper", "file"), ("stepper", "frame_size"), ("model", "file"))}
+
+
 def _run_kind(run: Path) -> tuple[str, dict]:
+    """"static" or "dynamic" and the run.json of a finished dbb-train run (one clear error if not)."""
     from .plenoctree import RUN_FORMAT as TREE_FORMAT
     from .rssm import RUN_FORMAT as RSSM_FORMAT
 
@@ -590,7 +595,11 @@ def _run_kind(run: Path) -> tuple[str, dict]:
     if not isinstance(meta, dict) or meta.get("format") not in kinds:
         raise DbbError(f"{run} is not a finished dbb-train run (run.json format "
                        f"{meta.get('format') if isinstance(meta, dict) else None!r})")
-    return kinds[meta["format"]], meta
+    kind = kinds[meta["format"]]
+    for a, b in _RUN_KEYS[kind]:
+        if not isinstance(meta.get(a), dict) or b not in meta[a]:
+            raise DbbError(f"{run}/run.json lacks {a}.{b}: is it a finished training run?")
+    return kind, meta
 
 
 def _need(run: Path, *names: str) -> None:
@@ -683,29 +692,27 @@ def make_bundle(run: Path, out: Path, zip_it: bool = False, dataset: Path | None
     kind, meta = _run_kind(run)
     if out.exists() and not overwrite:
         raise DbbError(f"{out} already exists (pass --overwrite to replace it)")
-    try:
-        with progress() as prog:
-            if not zip_it:
-                with atomic_dir(out, overwrite=True) as tmp:
-                    m = (build_static if kind == "static" else build_dynamic)(run, meta, tmp, dataset, prog)
-                    write_manifest(tmp, m)
-                return m
-            out.parent.mkdir(parents=True, exist_ok=True)
-            with tempfile.TemporaryDirectory(prefix=f".{out.name}.partial-", dir=out.parent) as t:
-                tmp = Path(t) / "bundle"
-                tmp.mkdir()
-                m = (build_static if kind == "static" else build_dynamic)(run, meta, tmp, dataset, prog)
+    build = build_static if kind == "static" else build_dynamic
+    with progress() as prog:
+        if not zip_it:
+            with atomic_dir(out, overwrite=True) as tmp:
+                m = build(run, meta, tmp, dataset, prog)
                 write_manifest(tmp, m)
-                z = Path(t) / "bundle.dbb"
-                with zipfile.ZipFile(z, "w", zipfile.ZIP_DEFLATED) as zf:
-                    for p in [tmp / MANIFEST, tmp / CHECKSUM] + [tmp / e.path for e in m.files]:
-                        zf.write(p, p.relative_to(tmp).as_posix())
-                if out.is_dir():
-                    shutil.rmtree(out)
-                os.replace(z, out)
             return m
-    except KeyError as e:
-        raise DbbError(f"{run}/run.json lacks {e}: is it a finished training run?") from None
+        out.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(prefix=f".{out.name}.partial-", dir=out.parent) as t:
+            tmp = Path(t) / "bundle"
+            tmp.mkdir()
+            m = build(run, meta, tmp, dataset, prog)
+            write_manifest(tmp, m)
+            z = Path(t) / "bundle.dbb"
+            with zipfile.ZipFile(z, "w", zipfile.ZIP_DEFLATED) as zf:
+                for p in [tmp / MANIFEST, tmp / CHECKSUM] + [tmp / e.path for e in m.files]:
+                    zf.write(p, p.relative_to(tmp).as_posix())
+            if out.is_dir():
+                shutil.rmtree(out)
+            os.replace(z, out)
+        return m
 
 
 # --------------------------------------------------------------------------- verify
@@ -759,7 +766,7 @@ def verify_bundle(path: Path) -> list[str]:
         done.append(f"model: {m.model['file']} loads")
         if fresh.shape != stored.shape:
             raise DbbError(f"{path}: a fresh render of {what} is {fresh.shape}, the stored preview {stored.shape}")
-        p = psnr(float(((fresh.astype(np.float32) - stored.astype(np.float32)) / 255.0).__pow__(2).mean()))
+        p = psnr(float((((fresh.astype(np.float32) - stored.astype(np.float32)) / 255.0) ** 2).mean()))
         if p < CHECK_PSNR_DB:
             raise DbbError(f"{path}: a fresh render of {what} differs from the stored preview ({p:.1f} dB < "
                            f"{CHECK_PSNR_DB:.0f} dB)")

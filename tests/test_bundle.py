@@ -176,6 +176,16 @@ def test_bad_input_is_one_line_exit_2_and_leaves_nothing(static_run, static_bund
     res = _cli("bundle", tmp_path / "broken", "-o", tmp_path / "b2")
     assert res.exit_code == 2 and "tree.npz is missing" in res.output
     assert not (tmp_path / "b2").exists() and not list(tmp_path.glob(".b2*"))
+    meta = json.loads((folder / "run/run.json").read_text())
+    (tmp_path / "broken/run.json").write_text(json.dumps({k: v for k, v in meta.items() if k != "tree"}))
+    res = _cli("bundle", tmp_path / "broken", "-o", tmp_path / "b2")
+    assert res.exit_code == 2 and "lacks tree.file" in res.output
+    # The run's dataset moved: say so and how to point at it.
+    shutil.copytree(folder / "run", tmp_path / "moved")
+    (tmp_path / "moved/run.json").write_text(json.dumps(meta | {"dataset": str(tmp_path / "gone")}))
+    res = _cli("bundle", tmp_path / "moved", "-o", tmp_path / "b3")
+    assert res.exit_code == 2 and "--dataset" in res.output and not (tmp_path / "b3").exists()
+    assert _cli("bundle", tmp_path / "moved", "-o", tmp_path / "b3", "--dataset", folder / "ds").exit_code == 0
     # Existing output without --overwrite.
     assert _cli("bundle", folder / "run", "-o", static_bundle).exit_code == 2
     # Cameras without intrinsics.
