@@ -408,7 +408,7 @@ def render_bundle(bundle: Path, cameras: Path, out: Path, first_frame: Path | No
         views = read_cameras(cameras, m.T if space == "bundle" else None)
         if first_frame is not None and m.kind == "static":
             raise DbbError("--first-frame applies to dynamic bundles only; this bundle is static")
-        with atomic_dir(Path(out), overwrite) as tmp, progress() as prog:
+        with atomic_dir(Path(out), overwrite or _empty_dir(out)) as tmp, progress() as prog:
             task = prog.add_task("render", total=len(views), info=m.kind)
             if m.kind == "static":
                 imgs = StaticRenderer(b.file(m.model["file"])).render(views, lambda: prog.advance(task))
@@ -425,6 +425,12 @@ def render_bundle(bundle: Path, cameras: Path, out: Path, first_frame: Path | No
                 if not cv2.imwrite(str(tmp / v.name), cv2.cvtColor(img, cv2.COLOR_RGBA2BGRA)):
                     raise DbbError(f"cannot write {tmp / v.name}")
     return [Path(out) / v.name for v in views]
+
+
+def _empty_dir(p: Path) -> bool:
+    """An empty folder someone made for the output is not a result to protect."""
+    p = Path(p)
+    return p.is_dir() and not any(p.iterdir())
 
 
 # --------------------------------------------------------------------------- previews
@@ -690,7 +696,7 @@ def make_bundle(run: Path, out: Path, zip_it: bool = False, dataset: Path | None
     """
     run, out = Path(run), Path(out)
     kind, meta = _run_kind(run)
-    if out.exists() and not overwrite:
+    if out.exists() and not (overwrite or _empty_dir(out)):
         raise DbbError(f"{out} already exists (pass --overwrite to replace it)")
     build = build_static if kind == "static" else build_dynamic
     with progress() as prog:

@@ -137,6 +137,7 @@ def test_render_equals_the_runs_tree_and_reads_both_intrinsic_layouts(static_run
     for per_frame in (False, True):
         cams = _cameras(test, tmp_path / f"cams{per_frame}.json", per_frame)
         out = tmp_path / f"out{per_frame}"
+        out.mkdir()                                       # an empty folder made for the output is fine
         res = _cli("render", static_bundle, "--cameras", cams, "-o", out)
         assert res.exit_code == 0, res.output
         assert sorted(p.name for p in out.iterdir()) == sorted(f"{f.name}.png" for f in test)
