@@ -118,6 +118,13 @@ def occupancy_mesh(mask: np.ndarray, bbox_min: np.ndarray, bbox_max: np.ndarray,
     if not mask.any():
         raise DbbError("nothing occupied to mesh")
     lo, hi = np.asarray(bbox_min, float), np.asarray(bbox_max, float)
+    # Mesh only the occupied box (plus a margin): the object rarely fills its cube.
+    cell0 = (hi - lo) / np.asarray(mask.shape, float)
+    idx = np.argwhere(mask)
+    a = np.maximum(idx.min(0) - 2, 0)
+    b = np.minimum(idx.max(0) + 3, mask.shape)
+    mask = mask[a[0]:b[0], a[1]:b[1], a[2]:b[2]]
+    lo, hi = lo + a * cell0, lo + b * cell0
     grid = mask.astype(np.float32)
     for _ in range(4):
         G = np.asarray(grid.shape, float)
