@@ -66,6 +66,11 @@ SEED = 0                    # dynamic previews: sampled rollouts are seeded, so 
 
 
 # --------------------------------------------------------------------------- manifest
+# What readers of each kind look up (besides the fields every manifest has).
+_KIND_KEYS = {"static": (("model", "file"),),
+              "dynamic": (("model", "file"), ("inputs", "frame_size"), ("inputs", "crop_fill"),
+                          ("inputs", "first_frame"), ("inputs", "first_view"), ("previews", "rollout"))}
+
 @dataclass(frozen=True)
 class FileEntry:
     path: str                 # relative, forward slashes
@@ -110,7 +115,15 @@ class Manifest:
             raise DbbError(f"{where}: missing {', '.join(need)}")
         if d["kind"] not in ("static", "dynamic"):
             raise DbbError(f"{where}: kind must be static or dynamic, not {d['kind']!r}")
-        T = np.asarray(d["bundle_from_board"], float)
+        need = _KIND_KEYS[d["kind"]] + (("object", "center"), ("object", "radius"), ("proxy_mesh", "file"),
+                                        ("previews", "sheet"), ("previews", "cell_px"))
+        lacking = [f"{a}.{b}" for a, b in need if not isinstance(d[a], dict) or b not in d[a]]
+        if lacking:
+            raise DbbError(f"{where}: missing {', '.join(lacking)}")
+        try:
+            T = np.asarray(d["bundle_from_board"], float)
+        except (TypeError, ValueError):
+            T = np.zeros(0)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise DbbError(f"{where}: bundle_from_board must be a 4x4 matrix")
         try:
