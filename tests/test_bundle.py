@@ -110,6 +110,9 @@ def test_zip_bundle_verifies_and_a_damaged_zip_does_not(static_run, tmp_path):
     (tmp_path / "foreign/manifest.json").write_text('{"format": "something-else"}')
     res = _cli("verify", tmp_path / "foreign")
     assert res.exit_code == 2 and "not a deep-billboard manifest" in res.output
+    (tmp_path / "foreign/manifest.json").write_text('{"format": "deep-billboard", "version": 1, "kind": "static"}')
+    res = _cli("render", tmp_path / "foreign", "--cameras", tmp_path / "x.json", "-o", tmp_path / "r")
+    assert res.exit_code == 2 and "missing" in res.output and len(res.output.strip().splitlines()) == 1
 
 
 def _cameras(frames, path, per_frame=False, drop_intrinsics=False):
