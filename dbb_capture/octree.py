@@ -329,7 +329,7 @@ class TreeRenderer:
         self.nb = nb
         self._grid = grid
         self._cam_cache: tuple = (None, None)
-        self._colour_cache: tuple | None = None     # per-thread leaf colours of the last frame
+        self._colour_cache: np.ndarray | None = None   # per-thread leaf RGB + frame stamp
         self._frame = 0
         if backend == "numba":
             self._np = self._cpu_tables(cells, rows, ub, binv)
@@ -351,7 +351,7 @@ class TreeRenderer:
         reading data ``rows`` (K,) and lying in bricks ``binv`` (K,) of the ``ub`` occupied ones.
 
         Colour rows are stored brick by brick, so the leaves a ray bundle meets share cache
-        lines; density sits in a dense per-brick table (0 = empty), read without indirection.
+        lines; each leaf's density and row share 8 bytes of a dense per-brick table (0 = empty).
         """
         from .octree_cpu import BLOCK_SHIFT
 
@@ -364,10 +364,10 @@ class TreeRenderer:
         slot = binv.astype(np.int64) * BRICK ** 3 + (lc[:, 0] * BRICK + lc[:, 1]) * BRICK + lc[:, 2]
         order = np.argsort(slot, kind="stable")
         n_slots = max(1, len(ub)) * BRICK ** 3
-        table = np.full(n_slots, -1, np.int32)
-        table[slot[order]] = np.arange(len(order), dtype=np.int32)
-        dens = np.zeros(n_slots, np.float32)
-        dens[slot] = g[rows, -1].astype(np.float32)
+        leaf = np.zeros((n_slots, 2), np.int32)               # [sigma (float32 bits), row]
+        leaf[:, 1] = -1
+        leaf[slot[order], 1] = np.arange(len(order), dtype=np.int32)
+        leaf.view(np.float32)[slot, 0] = g[rows, -1].astype(np.float32)
         # float16 bits as stored, each row padded to whole 64-byte lines and line aligned.
         width = -(-(g.shape[1] - 1) // 32) * 32
         k = max(1, len(rows))
@@ -378,8 +378,8 @@ class TreeRenderer:
             coef[:, :g.shape[1] - 1] = g[rows[order], :-1].astype(np.float16).view(np.uint16)
         return {"L": self.L, "lo": (cells.min(0) if len(cells) else np.zeros(3)).astype(np.float64),
                 "hi": (cells.max(0) + 1 if len(cells) else np.zeros(3)).astype(np.float64),
-                "blocks": blocks, "nblk": nk, "bricks": self._grid, "nbrk": self.nb, "table": table,
-                "dens": dens, "coef": coef, "degree": self.degree,
+                "blocks": blocks, "nblk": nk, "bricks": self._grid, "nbrk": self.nb, "leaf": leaf,
+                "leaf_sigma": leaf.view(np.float32), "coef": coef, "degree": self.degree,
                 "sigmoid": self.tree.colour_activation == "sigmoid"}
 
     def _trace_np(self, origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -398,18 +398,21 @@ class TreeRenderer:
         g = self._np
         workers = max(1, min(self.threads, -(-n // _RAY_CHUNK)))
         frame = 0
-        cache, stamp = np.zeros((workers, 1, 3), np.float32), np.zeros((workers, 1), np.int32)
+        cache = np.zeros((workers, 1, 4), np.float32)
         if origins.shape[0] == 1:
             k = g["coef"].shape[0]
-            if self._colour_cache is None or self._colour_cache[1].shape[0] < workers:
-                self._colour_cache = (np.zeros((workers, k, 3), np.float32), np.zeros((workers, k), np.int32))
+            if self._colour_cache is None or self._colour_cache.shape[0] < workers:
+                self._colour_cache = np.zeros((workers, k, 4), np.float32)
                 self._frame = 0
-            self._frame = self._frame % (2 ** 31 - 2) + 1
+            if self._frame >= 2 ** 24 - 1:               # stamps are float32: exact below 2^24
+                self._colour_cache[..., 3] = 0
+                self._frame = 0
+            self._frame += 1
             frame = self._frame
-            cache, stamp = self._colour_cache
+            cache = self._colour_cache
         args = (np.ascontiguousarray(origins, np.float64), np.ascontiguousarray(dirs, np.float32),
                 np.ascontiguousarray(rot, np.float64), self.inv, self.offset, g["L"], g["lo"], g["hi"],
-                g["blocks"], g["nblk"], g["bricks"], g["nbrk"], g["table"], g["dens"], g["coef"], HALF_SCALE,
+                g["blocks"], g["nblk"], g["bricks"], g["nbrk"], g["leaf"], g["leaf_sigma"], g["coef"], HALF_SCALE,
                 g["degree"], g["sigmoid"], float(self.t_min), self._w_eps)
         starts = itertools.count(0, _RAY_CHUNK)
 
@@ -417,7 +420,7 @@ class TreeRenderer:
             for s in starts:                 # next() on a count is atomic under the GIL
                 if s >= n:
                     return
-                trace_rays(*args, s, min(n, s + _RAY_CHUNK), slot, frame, cache, stamp, rgb, alpha)
+                trace_rays(*args, s, min(n, s + _RAY_CHUNK), slot, frame, cache, rgb, alpha)
 
         with self._lock:                     # the colour cache is per renderer
             if workers == 1:

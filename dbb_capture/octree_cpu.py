@@ -101,10 +101,9 @@ def _box_exit(cx: int, cy: int, cz: int, size: float, px: float, py: float, pz: 
 @numba.njit(cache=True, fastmath=_FM, nogil=True)
 def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.ndarray, offset: np.ndarray,
                L: int, lo: np.ndarray, hi: np.ndarray, blocks: np.ndarray, nblk: int, bricks: np.ndarray,
-               nbrk: int, table: np.ndarray, dens: np.ndarray, coef: np.ndarray, p2: np.ndarray, degree: int,
+               nbrk: int, leaf_row: np.ndarray, leaf_sigma: np.ndarray, coef: np.ndarray, p2: np.ndarray, degree: int,
                sigmoid: bool,
                t_min: float, w_eps: float, start: int, end: int, slot: int, frame: int, cache: np.ndarray,
-               stamp: np.ndarray,
                rgb: np.ndarray, alpha: np.ndarray) -> None:
     """Premultiplied RGB into ``rgb`` (N, 3) and alpha into ``alpha`` (N,) of rays ``start``
     to ``end`` (releases the GIL: Python threads run disjoint ranges side by side).
@@ -112,14 +111,16 @@ def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.n
     ``origins`` (1 or N, 3) world; ``dirs`` (N, 3) unit, turned to world by ``rot`` (3, 3);
     the tree maps world x to lattice ``(offset + x * inv) * L``. ``lo``/``hi`` (3,) bound the
     occupied leaves (lattice units). ``blocks`` (nblk^3,) uint8 marks 32^3-leaf blocks with
-    leaves, ``bricks`` (nbrk^3,) int32 the brick of each 8^3-leaf brick (-1 empty), ``table``
-    (n_bricks * 512,) the data row of each leaf (-1 empty), ``dens`` (n_bricks * 512,) its density per world unit (0 empty) and
+    leaves, ``bricks`` (nbrk^3,) int32 the brick of each 8^3-leaf brick (-1 empty);
+    ``leaf_row`` (n_bricks * 512, 2) int32 holds per leaf its density (float32 bits, read
+    through the float32 view ``leaf_sigma`` of the same memory; 0 = empty) and its data row,
+    so one cache line serves both.
     ``coef`` (K, >= 3 * B) uint16 the float16 bits of each row's SH coefficients (rows
     padded to whole cache lines: one miss fetches a leaf's colour), ``p2`` :data:`HALF_SCALE`. Rays stop once transmittance < ``t_min``;
     colour is evaluated only where the sample weight exceeds ``w_eps``.
-    ``frame`` > 0 (only with one origin) turns on the leaf colour cache ``cache[slot]``
-    (K, 3) float32, valid where ``stamp[slot]`` (K,) int32 equals ``frame``; each thread
-    owns a slot.
+    ``frame`` > 0 (only with one origin, below 2^24) turns on the leaf colour cache
+    ``cache[slot]`` (K, 4) float32: RGB, valid where the 4th value equals ``frame``; each
+    thread owns a slot.
     """
     nb = (degree + 1) * (degree + 1)
     bsz = float(1 << BLOCK_SHIFT)
@@ -182,17 +183,17 @@ def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.n
             while True:
                 tn = min(mx, min(my, mz))
                 local = base | (lx << 6) | (ly << 3) | lz
-                sg = dens[local]
+                sg = leaf_sigma[local, 0]
                 if sg > 0:
                     a = 1.0 - _exp_neg(sg * (min(tn, t_end) - t))
                     w = T * a
                     if w > w_eps:
-                        row = table[local]
+                        row = leaf_row[local, 1]
                         if frame > 0:
                             # One camera centre: colour a leaf once per frame, along
                             # the direction to its centre (within a leaf's angle of
                             # every ray through it), and reuse it for later rays.
-                            if stamp[slot, row] == frame:
+                            if cache[slot, row, 3] == frame:
                                 v0, v1, v2 = cache[slot, row, 0], cache[slot, row, 1], cache[slot, row, 2]
                             else:
                                 ex = ((kx << 3) + lx + 0.5 - px) / (inv[0] * L)
@@ -204,7 +205,7 @@ def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.n
                                 cache[slot, row, 0] = v0
                                 cache[slot, row, 1] = v1
                                 cache[slot, row, 2] = v2
-                                stamp[slot, row] = frame
+                                cache[slot, row, 3] = frame
                         else:
                             if not basis_ready:
                                 _sh_basis(wx, wy, wz, degree, shb)
