@@ -361,7 +361,7 @@ def photo_init(fld: LayerField, views: list[PosedView], exclude_radius: float | 
                 oc = center - eye
                 along = d @ oc
                 ok &= ~((along > 0) & ((oc @ oc) - along ** 2 < exclude_radius ** 2))
-            uv = project_points(pts, v.c2w, v.intr).astype(np.float32)
+            uv = np.clip(project_points(pts, v.c2w, v.intr), -1e6, 1e6).astype(np.float32)  # behind: far off
             hh, ww = v.image.shape[:2]
             ok &= (uv[:, 0] >= 0) & (uv[:, 0] <= ww - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= hh - 1)
             col = cv2.remap(v.image, uv[:, 0].reshape(s, s), uv[:, 1].reshape(s, s), cv2.INTER_LINEAR)
@@ -373,6 +373,11 @@ def photo_init(fld: LayerField, views: list[PosedView], exclude_radius: float | 
         mean = np.clip(s1 / np.maximum(cnt, 1)[:, None], 0.01, 0.99)
         var = (s2 / np.maximum(cnt, 1)[:, None] - mean ** 2).sum(1).clip(0)
         alpha = np.clip(np.where(seen, 0.9 * np.exp(-var / sharpness ** 2), 0.02), 0.01, 0.99)
+        if abs(hgt) < 1e-9:
+            # The board plane: the board is an opaque plane there, and so most likely is what it
+            # lies on. Its fine high-contrast texture would fail the agreement test under
+            # sub-pixel pose noise, so it starts opaque wherever seen.
+            alpha = np.where(seen, 0.95, alpha)
         t = layers[li].view(-1, 4)
         t[:, :3] = torch.from_numpy(np.where(seen[:, None], np.log(mean / (1 - mean)), 0.0)).float()
         t[:, 3] = torch.from_numpy(np.log(alpha / (1 - alpha))).float()
@@ -469,26 +474,55 @@ class BackgroundModel:
                    BackgroundConfig(**st["cfg"]))
 
 
-def parallax_views(c2ws: np.ndarray, center: np.ndarray, radius: float, up: np.ndarray) -> float:
-    """How well the views see past the object: median over views of the number of other views
-    that see, with a ray missing the object's sphere, the board-plane point hidden behind the
-    object centre from that view (a count; 0 when no view's line of sight meets the plane)."""
-    eyes = np.asarray(c2ws)[:, :3, 3]
-    counts = []
-    for e in eyes:
+def parallax_coverage(c2ws: np.ndarray, center: np.ndarray, radius: float, up: np.ndarray,
+                      min_views: int = 2, max_views: int = 60) -> float:
+    """How much of what the object hides can other views see: median over views of the fraction.
+
+    For a view, the board-plane points hidden behind the object's sphere (its disc, a grid of
+    rays) but outside the sphere itself are what the matte needs predicted there; a point counts
+    as seen when at least ``min_views`` other views reach it with a ray that misses the sphere.
+    Points under the object (inside the sphere) are left out: nothing ever sees them.
+    """
+    c2ws = np.asarray(c2ws)
+    if len(c2ws) > max_views:
+        c2ws = c2ws[np.linspace(0, len(c2ws) - 1, max_views).round().astype(int)]
+    eyes = c2ws[:, :3, 3]
+    g = np.linspace(-1, 1, 9)
+    gx, gy = np.meshgrid(g, g)
+    disc = np.stack([gx.ravel(), gy.ravel()], 1)
+    disc = disc[(disc ** 2).sum(1) <= 1]
+    fractions = []
+    for i, e in enumerate(eyes):
         v = center - e
-        if abs(v @ up) < 1e-9:
+        D = float(np.linalg.norm(v))
+        if D <= radius:
             continue
-        t = -(e @ up) / (v @ up)  # the board plane is {x: x . up = 0} through the origin
-        if t <= 1:
-            continue
-        p = e + t * v
-        d = p - eyes
+        z = v / D
+        x = np.cross(z, up)
+        if np.linalg.norm(x) < 1e-9:
+            x = np.cross(z, [1.0, 0.0, 0.0])
+        x /= np.linalg.norm(x)
+        y = np.cross(z, x)
+        tan_a = radius / np.sqrt(D * D - radius * radius)
+        d = z + tan_a * (disc[:, :1] * x + disc[:, 1:] * y)
         d /= np.linalg.norm(d, axis=1, keepdims=True)
-        oc = center - eyes
-        along = (oc * d).sum(1)
-        counts.append(int((((oc * oc).sum(1) - along ** 2) > radius ** 2).sum()))
-    return float(np.median(counts)) if counts else 0.0
+        du = d @ up
+        ok = du < -1e-9                                  # rays going down toward the plane
+        t = -(e @ up) / np.where(ok, du, -1.0)
+        pts = e + t[:, None] * d
+        ok &= np.linalg.norm(pts - center, axis=1) > radius
+        if not ok.any():
+            continue
+        pts = pts[ok]
+        others = np.delete(eyes, i, 0)
+        seg = pts[None] - others[:, None]                # (V, P, 3) from each other eye to each point
+        L = np.linalg.norm(seg, axis=2)
+        u = seg / L[..., None]
+        oc = center - others
+        along = np.einsum("vpk,vk->vp", u, oc)
+        miss = ((oc * oc).sum(1)[:, None] - along ** 2 > radius ** 2) | (along < 0) | (along > L)
+        fractions.append(float((miss.sum(0) >= min_views).mean()))
+    return float(np.median(fractions)) if fractions else 0.0
 
 
 def train_background(views: Iterable[PosedView], n_views: int, center: np.ndarray, radius: float,

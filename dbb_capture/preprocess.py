@@ -302,11 +302,11 @@ def background_stage(ctx: StageContext, poses: PosesOutput) -> BackgroundOutput:
         else:
             src = inp.footage
             posed = _subsample(poses.run.posed, cfg.background.max_frames)
-            par = parallax_views(np.stack([p.c2w for p in posed]), sphere.center, sphere.radius, sphere.up)
-            report["parallax_views"] = par
-            if par < 3:
-                raise InputError(f"no clean plate, and too little parallax to see behind the object (a median of "
-                                 f"{par:g} other views see the table behind it; need 3): film a clean plate "
+            par = parallax_coverage(np.stack([p.c2w for p in posed]), sphere.center, sphere.radius, sphere.up)
+            report["parallax_coverage"] = round(par, 3)
+            if par < 0.5:
+                raise InputError(f"no clean plate, and too little parallax to see behind the object (other views "
+                                 f"see {100 * par:.0f}% of the table it hides, need 50%): film a clean plate "
                                  f"(background.mp4) or move around the object more")
         by_index = {p.index: p for p in posed}
         task = prog.add_task("cut training crops", total=len(posed), info="")

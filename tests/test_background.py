@@ -10,7 +10,7 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from dbb_capture.background import (BackgroundConfig, LayerField, PosedView, RayBank, new_field, parallax_views,
+from dbb_capture.background import (BackgroundConfig, LayerField, PosedView, RayBank, new_field, parallax_coverage,
                                     pinhole_rays, train_background)
 from dbb_capture.cameras import look_at, opencv_from_opengl
 from dbb_capture.cli.capture import main
@@ -55,11 +55,13 @@ def _intr():
     return Intrinsics(320, 240, 260.0, 260.0, 159.5, 119.5)
 
 
-def test_parallax_views_counts_views_that_see_behind_the_object():
+def test_parallax_coverage_measures_what_other_views_see_behind_the_object():
     center = np.array([0.3, 0.2, -0.08])
-    assert parallax_views(_ring(center), center, 0.08, UP) >= 3
+    assert parallax_coverage(_ring(center), center, 0.08, UP) > 0.6
     still = np.repeat(_ring(center, n=1), 10, 0)  # a camera that never moves sees nothing behind
-    assert parallax_views(still, center, 0.08, UP) == 0
+    assert parallax_coverage(still, center, 0.08, UP) < 0.1
+    narrow = np.stack([_ring(center, n=12)[5]] * 5 + [_ring(center, n=12)[6]] * 5)
+    assert parallax_coverage(narrow, center, 0.08, UP) < parallax_coverage(_ring(center), center, 0.08, UP)
 
 
 @pytest.fixture(scope="module")
