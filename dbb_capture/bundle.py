@@ -758,7 +758,8 @@ def verify_bundle(path: Path) -> list[str]:
                 raise DbbError(f"{path}: {e.path} is {p.stat().st_size} bytes, manifest says {e.bytes}")
             if sha256_of(p) != e.sha256:
                 raise DbbError(f"{path}: {e.path} fails its sha256 check (changed or damaged)")
-        stray = [x.path for x in file_entries(b.root) if x.path not in listed]
+        present = {p.relative_to(b.root).as_posix() for p in b.root.rglob("*") if p.is_file()}
+        stray = sorted(present - listed - {MANIFEST, CHECKSUM})
         if stray:
             raise DbbError(f"{path}: files not in the manifest: {', '.join(stray[:3])}")
         done.append(f"files: {len(m.files)} match their sha256 and size")
