@@ -94,6 +94,10 @@ def test_verify_passes_then_catches_a_flipped_byte_anywhere(static_bundle, tmp_p
         res = _cli("verify", bad)
         assert res.exit_code == 2, (rel, res.output)
         assert len(res.output.strip().splitlines()) == 1 and "error" in res.output
+    shutil.copytree(static_bundle, tmp_path / "stray")
+    (tmp_path / "stray/extra.bin").write_bytes(b"x")
+    res = _cli("verify", tmp_path / "stray")
+    assert res.exit_code == 2 and "not in the manifest: extra.bin" in res.output
 
 
 def test_zip_bundle_verifies_and_a_damaged_zip_does_not(static_run, tmp_path):
