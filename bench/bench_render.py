@@ -4,8 +4,10 @@ docs/benchmarks.md, section "PlenOctree (issue 4)". Run under ``flock /tmp/dbb-b
     python bench/bench_render.py run RUN [RUN ...]   # trees of dbb-train plenoctree run folders
     python bench/bench_render.py shell               # a synthetic opaque-shell tree (no haze)
 
-For a run: straight-RGBA frames/s at 256x256 and 800x800 from the first held-out camera of
-its dataset (every 8th view), the tree's size, and with ``--psnr`` the held-out PSNR on white
+For a run: straight-RGBA frames/s at 256x256 and 800x800 (all cores) from the first held-out
+camera of its dataset (every 8th view), the best CPU seconds per frame on one thread (other
+jobs on a shared machine move it far less than the frame rate; the load average is recorded),
+the tree's size, and with ``--psnr`` the held-out PSNR on white
 (the quality a bake setting costs or buys). ``--torch`` also times the PyTorch path at 256.
 The shell tree is a sphere of opaque leaves at depth 7 (256^3), what a well-converged object
 looks like to the renderer, seen from 2.5 radii (of the tree cube) with a 40 degree field of
@@ -17,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -38,9 +41,29 @@ def fps(renderer: TreeRenderer, c2w: np.ndarray, intr: Intrinsics, repeats: int)
     return repeats / (time.perf_counter() - t)
 
 
+def cpu_seconds(renderer: TreeRenderer, c2w: np.ndarray, intr: Intrinsics, repeats: int) -> float:
+    """CPU seconds per frame on one thread (best of ``repeats``): what other jobs on a shared
+    machine change least. n idle cores give about n / this frames/s."""
+    threads, renderer.threads = renderer.threads, 1
+    renderer.render(c2w, intr)
+    best = math.inf
+    for _ in range(repeats):
+        t = time.process_time()
+        renderer.render(c2w, intr)
+        best = min(best, time.process_time() - t)
+    renderer.threads = threads
+    return best
+
+
 def speeds(r: TreeRenderer, c2w: np.ndarray, base: Intrinsics, repeats: int) -> dict:
-    return {f"fps_{s}": fps(r, c2w, scaled_intrinsics(base, base.width / s), repeats if s <= 256 else
-                             max(2, repeats // 4)) for s in (256, 800)}
+    out = {"load_average_before": os.getloadavg()[0]}
+    for s in (256, 800):
+        intr = scaled_intrinsics(base, base.width / s)
+        n = repeats if s <= 256 else max(2, repeats // 4)
+        out[f"fps_{s}"] = fps(r, c2w, intr, n)
+        out[f"cpu_s_per_frame_{s}"] = cpu_seconds(r, c2w, intr, n)
+    out["load_average_after"] = os.getloadavg()[0]
+    return out
 
 
 def bench_run(run_dir: Path, repeats: int, with_psnr: bool, with_torch: bool) -> dict:

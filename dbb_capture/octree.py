@@ -382,9 +382,12 @@ class TreeRenderer:
                 "leaf_sigma": leaf.view(np.float32), "coef": coef, "degree": self.degree,
                 "sigmoid": self.tree.colour_activation == "sigmoid"}
 
-    def _trace_np(self, origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Premultiplied RGB (N, 3) and alpha (N,) with the numba kernel; ``dirs`` (N, 3) unit
-        directions turned to world by ``rot`` (3, 3), ``origins`` (1 or N, 3) world. With one
+    def _trace_np(self, origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, pixel: np.ndarray | None = None,
+                  background: tuple[float, float, float] | None | str = "premultiplied") -> np.ndarray:
+        """Colours (N, 4 or 3) float32 of rays with the numba kernel; ``dirs`` (N, 3) unit
+        directions turned to world by ``rot`` (3, 3), ``origins`` (1 or N, 3) world; ray ``r``
+        lands in row ``pixel[r]`` (default ``r``). ``background``: ``"premultiplied"``
+        (premultiplied RGBA), ``None`` (straight RGBA) or an RGB to composite on. With one
         origin (a camera), leaf colours are cached per frame.
 
         Ranges of ``_RAY_CHUNK`` rays go to ``self.threads`` threads, each pulling the next
@@ -393,8 +396,10 @@ class TreeRenderer:
         from .octree_cpu import HALF_SCALE, trace_rays
 
         n = dirs.shape[0]
-        rgb = np.empty((n, 3), np.float32)
-        alpha = np.empty(n, np.float32)
+        mode = 0 if isinstance(background, str) else (1 if background is None else 2)
+        bg = np.asarray(background if mode == 2 else (0.0, 0.0, 0.0), np.float64)
+        out = np.empty((n, 3 if mode == 2 else 4), np.float32)
+        pixel = np.arange(n) if pixel is None else pixel
         g = self._np
         workers = max(1, min(self.threads, -(-n // _RAY_CHUNK)))
         frame = 0
@@ -420,7 +425,7 @@ class TreeRenderer:
             for s in starts:                 # next() on a count is atomic under the GIL
                 if s >= n:
                     return
-                trace_rays(*args, s, min(n, s + _RAY_CHUNK), slot, frame, cache, rgb, alpha)
+                trace_rays(*args, s, min(n, s + _RAY_CHUNK), slot, frame, cache, pixel, mode, bg, out)
 
         with self._lock:                     # the colour cache is per renderer
             if workers == 1:
@@ -428,7 +433,7 @@ class TreeRenderer:
             else:
                 for f in [_pool(self.threads).submit(work, i) for i in range(workers)]:
                     f.result()
-        return rgb, alpha
+        return out
 
     def _camera_dirs(self, intr) -> tuple[np.ndarray, np.ndarray]:
         """Unit camera-frame ray directions (H*W, 3) float32 of ``intr`` in 8x8-pixel tile
@@ -473,8 +478,8 @@ class TreeRenderer:
         if self.backend == "numba":
             o = origins.detach().cpu().numpy() if torch.is_tensor(origins) else np.asarray(origins)
             d = dirs.detach().cpu().numpy() if torch.is_tensor(dirs) else np.asarray(dirs)
-            rgb, a = self._trace_np(o.reshape(-1, 3), d.reshape(-1, 3), np.eye(3))
-            return torch.from_numpy(rgb), torch.from_numpy(a)
+            out = self._trace_np(o.reshape(-1, 3), d.reshape(-1, 3), np.eye(3))
+            return torch.from_numpy(out[:, :3]), torch.from_numpy(out[:, 3])
         return self._render_rays_torch(origins, dirs)
 
     def _render_rays_torch(self, origins: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -547,14 +552,9 @@ class TreeRenderer:
         if self.backend == "numba":
             c2w = np.asarray(c2w, np.float64)
             dirs, pixel = self._camera_dirs(intr)
-            rgb, a = self._trace_np(c2w[None, :3, 3], dirs, c2w[:3, :3])
-            if background is None:
-                out = np.concatenate([np.clip(rgb / np.maximum(a, 1e-6)[:, None], 0, 1), a[:, None]], -1)
-            else:
-                out = np.clip(rgb + (1 - a)[:, None] * np.asarray(background, np.float32), 0, 1)
-            img = np.empty_like(out)
-            img[pixel] = out
-            return img.reshape(intr.height, intr.width, -1)
+            out = self._trace_np(c2w[None, :3, 3], dirs, c2w[:3, :3], pixel,
+                                 None if background is None else tuple(float(v) for v in background))
+            return out.reshape(intr.height, intr.width, -1)
         from .datasets import frame_rays
 
         o, d = frame_rays(intr, c2w)

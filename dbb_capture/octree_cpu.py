@@ -88,6 +88,24 @@ def _colour(coef: np.ndarray, row: int, shb: np.ndarray, nb: int, sigmoid: bool,
 
 
 @numba.njit(cache=True, fastmath=_FM, nogil=True)
+def _write(out: np.ndarray, p: int, mode: int, bg: np.ndarray, r: float, g: float, b: float, a: float) -> None:
+    """Store premultiplied ``r, g, b`` and alpha ``a`` in ``out[p]`` as mode 0: premultiplied
+    RGBA; 1: straight RGBA (colour clipped to [0, 1]); 2: RGB over background ``bg`` (3,)."""
+    if mode == 0:
+        out[p, 0], out[p, 1], out[p, 2], out[p, 3] = r, g, b, a
+    elif mode == 1:
+        k = 1.0 / max(a, 1e-6)
+        out[p, 0] = min(max(r * k, 0.0), 1.0)
+        out[p, 1] = min(max(g * k, 0.0), 1.0)
+        out[p, 2] = min(max(b * k, 0.0), 1.0)
+        out[p, 3] = a
+    else:
+        out[p, 0] = min(max(r + (1.0 - a) * bg[0], 0.0), 1.0)
+        out[p, 1] = min(max(g + (1.0 - a) * bg[1], 0.0), 1.0)
+        out[p, 2] = min(max(b + (1.0 - a) * bg[2], 0.0), 1.0)
+
+
+@numba.njit(cache=True, fastmath=_FM, nogil=True)
 def _box_exit(cx: int, cy: int, cz: int, size: float, px: float, py: float, pz: float,
               hx: int, hy: int, hz: int, ix: float, iy: float, iz: float) -> float:
     """Ray parameter where the ray P + t D leaves box ``c * size .. (c + 1) * size``;
@@ -104,9 +122,9 @@ def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.n
                nbrk: int, leaf_row: np.ndarray, leaf_sigma: np.ndarray, coef: np.ndarray, p2: np.ndarray, degree: int,
                sigmoid: bool,
                t_min: float, w_eps: float, start: int, end: int, slot: int, frame: int, cache: np.ndarray,
-               rgb: np.ndarray, alpha: np.ndarray) -> None:
-    """Premultiplied RGB into ``rgb`` (N, 3) and alpha into ``alpha`` (N,) of rays ``start``
-    to ``end`` (releases the GIL: Python threads run disjoint ranges side by side).
+               pixel: np.ndarray, mode: int, bg: np.ndarray, out: np.ndarray) -> None:
+    """Colour of rays ``start`` to ``end`` into row ``pixel[r]`` of ``out`` (see :func:`_write`
+    for ``mode`` and ``bg``). Releases the GIL: Python threads run disjoint ranges side by side.
 
     ``origins`` (1 or N, 3) world; ``dirs`` (N, 3) unit, turned to world by ``rot`` (3, 3);
     the tree maps world x to lattice ``(offset + x * inv) * L``. ``lo``/``hi`` (3,) bound the
@@ -127,10 +145,6 @@ def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.n
     rsz = float(1 << BRICK_SHIFT)
     shb = np.zeros(16)
     for r in range(start, end):
-        rgb[r, 0] = 0.0
-        rgb[r, 1] = 0.0
-        rgb[r, 2] = 0.0
-        alpha[r] = 0.0
         oi = r if origins.shape[0] > 1 else 0
         wx = rot[0, 0] * dirs[r, 0] + rot[0, 1] * dirs[r, 1] + rot[0, 2] * dirs[r, 2]
         wy = rot[1, 0] * dirs[r, 0] + rot[1, 1] * dirs[r, 1] + rot[1, 2] * dirs[r, 2]
@@ -151,6 +165,7 @@ def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.n
         t = max(0.0, max(min(ax, bx), max(min(ay, by), min(az, bz))))
         t_end = min(max(ax, bx), min(max(ay, by), max(az, bz)))
         if not t < t_end:
+            _write(out, pixel[r], mode, bg, 0.0, 0.0, 0.0, 0.0)
             continue
         eps = 1e-4 / math.sqrt(dx * dx + dy * dy + dz * dz)   # a 1e-4 leaf nudge
         T = 1.0
@@ -239,7 +254,4 @@ def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.n
                         break
         # The weight of skipped samples goes to the evaluated ones in proportion.
         scale = (1.0 - T) / w_sum if w_sum > 0 else 0.0
-        rgb[r, 0] = cr * scale
-        rgb[r, 1] = cg * scale
-        rgb[r, 2] = cb * scale
-        alpha[r] = 1.0 - T
+        _write(out, pixel[r], mode, bg, cr * scale, cg * scale, cb * scale, 1.0 - T)
