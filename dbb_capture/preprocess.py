@@ -26,7 +26,7 @@ from .background import (
     BackgroundConfig,
     BackgroundModel,
     PosedView,
-    parallax_views,
+    parallax_coverage,
     train_background,
 )
 from .board import BoardSpec
