@@ -1,48 +1,46 @@
 #!/usr/bin/env bash
-# Set up .venv if needed, then run the end-to-end demo on sample_data/ and print what it made.
+# Set up .venv if needed, then run the whole pipeline on sample_data/ and print what it made:
+# preprocess (poses, background field, mattes, crops) -> train (short budgets) -> bundle
+# (manifest, model, proxy mesh, previews) -> render and verify, for the static and the dynamic sample.
 # Usage: ./scripts/demo.sh [OUTPUT_DIR]   (default: out/demo)
+# Budgets (minutes) can be changed: DBB_BG_MINUTES, DBB_TRAIN_MINUTES.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ./scripts/setup.sh
 export PATH="$PWD/.venv/bin:$PATH"
 OUT=${1:-out/demo}
+BG=${DBB_BG_MINUTES:-1}
+TRAIN=${DBB_TRAIN_MINUTES:-2.5}
 mkdir -p "$OUT"
+start=$SECONDS
 made=()
-has() { "$1" "$2" --help >/dev/null 2>&1; }
+step() { echo; echo "== [$(( (SECONDS - start) / 60 )) min] $*"; }
 
-echo "== 1. a fresh synthetic capture with ground truth (dbb-capture synth)"
-dbb-capture synth "$OUT/synth_static" --kind static --seconds 3 --fps 10 --resolution 320x240 --overwrite
-made+=("$OUT/synth_static  synthetic capture: video.mp4, background.mp4, board.json, object.json, ground_truth/")
+step "1. preprocess sample_data/static: poses, background field (clean plate), mattes, 128 px crops"
+dbb-capture preprocess sample_data/static -o "$OUT/static_dataset" --crop-size 128 --background-minutes "$BG" --overwrite
+made+=("$OUT/static_dataset        dataset: crops.json, transforms.json (+ masks), contact_sheet.png, dataset.json")
+
+step "2. preprocess sample_data/dynamic: same, 64 px crops and 11-frame sequences"
+dbb-capture preprocess sample_data/dynamic -o "$OUT/dynamic_dataset" --background-minutes "$BG" --overwrite
+made+=("$OUT/dynamic_dataset       dataset: crops.json with sequences, contact_sheet.png, dataset.json")
+
+step "3. train the static object: radiance field baked into a PlenOctree ($TRAIN min)"
+dbb-train plenoctree "$OUT/static_dataset" -o "$OUT/static_run" --minutes "$TRAIN" --res-max 128 --overwrite
+made+=("$OUT/static_run            PlenOctree run: tree.npz, report/ (held-out renders and PSNR)")
+
+step "4. train the dynamic object: viewpoint-conditioned RSSM ($TRAIN min)"
+dbb-train rssm "$OUT/dynamic_dataset" -o "$OUT/dynamic_run" --minutes "$TRAIN" --overwrite
+made+=("$OUT/dynamic_run           RSSM run: model.pt, stepper.ts, report/ (evaluation, predicted strips)")
 
 for kind in static dynamic; do
-  cap=sample_data/$kind
-  if has dbb-capture preprocess; then
-    echo "== 2. preprocess sample_data/$kind (poses, background removal, crops)"
-    dbb-capture preprocess "$cap" -o "$OUT/${kind}_dataset" --overwrite
-    made+=("$OUT/${kind}_dataset  preprocessed dataset")
-  fi
+  step "5. bundle the $kind billboard, render it from the dataset's cameras, verify it"
+  dbb-export bundle "$OUT/${kind}_run" -o "$OUT/${kind}_bundle" --overwrite
+  dbb-export render "$OUT/${kind}_bundle" --cameras "$OUT/${kind}_dataset/crops.json" -o "$OUT/${kind}_renders" --overwrite
+  dbb-export verify "$OUT/${kind}_bundle"
+  made+=("$OUT/${kind}_bundle  bundle: manifest.json, model, proxy.glb, previews (turntable, sheet)")
+  made+=("$OUT/${kind}_renders RGBA renders from the bundle, one per crop camera")
 done
 
-if has dbb-train plenoctree && [ -f "$OUT/static_dataset/crops.json" ]; then
-  echo "== 3. train the static object (dbb-train plenoctree, short budget)"
-  dbb-train plenoctree "$OUT/static_dataset" -o "$OUT/static_run" --minutes 3 --overwrite
-  made+=("$OUT/static_run  PlenOctree training run")
-fi
-if has dbb-train rssm && [ -f "$OUT/dynamic_dataset/crops.json" ]; then
-  echo "== 3b. train the dynamic object (dbb-train rssm, short budget)"
-  dbb-train rssm "$OUT/dynamic_dataset" -o "$OUT/dynamic_run" --minutes 3 --overwrite
-  made+=("$OUT/dynamic_run  RSSM training run")
-fi
-if has dbb-export bundle; then
-  for kind in static dynamic; do
-    if [ -d "$OUT/${kind}_run" ]; then
-      echo "== 4. bundle the $kind billboard (dbb-export bundle)"
-      dbb-export bundle "$OUT/${kind}_run" -o "$OUT/${kind}_bundle" --overwrite
-      made+=("$OUT/${kind}_bundle  billboard bundle (manifest, model, proxy mesh, previews)")
-    fi
-  done
-fi
-
 echo
-echo "Demo finished. It made:"
+echo "Demo finished in $(( (SECONDS - start) / 60 )) min $(( (SECONDS - start) % 60 )) s. It made:"
 for m in "${made[@]}"; do echo "  $m"; done
