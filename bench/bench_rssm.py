@@ -2,11 +2,13 @@
 
     speed:   one step + decode, batch 1, TorchScript stepper, at 64x64 and 256x256
              .venv/bin/python bench/bench_rssm.py speed --threads 2
-    quality: render a synthetic dynamic toy's crops (crops.json, perfect mattes), train for
-             --minutes, then 10-step open-loop PSNR vs copy-first and "near", and the
-             motion-energy ratio of a 150-step rollout at a still viewpoint against the toy
-             rendered at that same still viewpoint
-             .venv/bin/python bench/bench_rssm.py quality --minutes 15 --work /tmp/dbb-bench-rssm
+    quality: train on a `dbb-capture preprocess` dataset for --minutes, then 10-step open-loop
+             PSNR vs copy-first and "near", and the motion-energy ratio of a 150-step rollout at
+             a still viewpoint; with --capture (the synthetic capture behind the dataset) the
+             truth of that ratio is the ground-truth object rendered at the still viewpoint
+             .venv/bin/dbb-capture preprocess sample_data/dynamic -o /tmp/dyn_ds --background-minutes 1
+             .venv/bin/python bench/bench_rssm.py quality /tmp/dyn_ds --capture sample_data/dynamic \
+                 --run /tmp/rssm_run --minutes 15
 
 Take timing figures under ``flock /tmp/dbb-bench.lock`` on a shared machine.
 """
@@ -19,6 +21,7 @@ import os
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from dbb_capture import rssm
@@ -44,36 +47,73 @@ def speed(size: int, steps: int = 300) -> dict:
             "threads": torch.get_num_threads(), "parameters": sum(p.numel() for p in model.parameters())}
 
 
-def quality(work: Path, minutes: float, seconds: float, size: int, batch: int, steps: int | None,
-            lr: float, run_name: str = "run") -> dict:
-    work.mkdir(parents=True, exist_ok=True)
-    ds = work / "dataset"
-    t = time.perf_counter()
-    if not (ds / "crops.json").is_file() or not (work / "still.pt").is_file():
-        sc = rssm.synthetic_crops(ds, seconds=seconds, fps=10, size=size, still_steps=150)
-        torch.save({"first": sc.still_first, "view": sc.still_view, "truth": sc.still_truth}, work / "still.pt")
-    still = torch.load(work / "still.pt", weights_only=False)
-    render_s = time.perf_counter() - t
-    run = work / run_name
-    t = time.perf_counter()
-    meta = rssm.train_run(ds, run, rssm.RssmConfig(size=size), rssm.TrainConfig(minutes, steps, batch=batch, lr=lr),
-                          overwrite=True)
-    train_s = time.perf_counter() - t
-    # Re-evaluate with the motion truth rendered at the still viewpoint (the run's own eval has
-    # only the moving-camera dataset to compare with).
+def still_truth(dataset: Path, capture: Path, steps: int = 150, samples: int = 2) -> dict:
+    """Motion truth at a still viewpoint for a preprocess dataset of a synthetic capture.
+
+    The first test crop (its image as preprocess cut it, its viewpoint) starts the rollout;
+    the truth is the capture's ground-truth object rendered through that frame's crop camera
+    (preprocess poses are in the board frame, as the synthetic world) for ``steps`` more frames.
+    """
+    from dbb_capture.cameras import Intrinsics, opencv_from_opengl
+    from dbb_capture.synth import load_ground_truth, render_object_rgba
+
+    doc = json.loads((Path(dataset) / "crops.json").read_text())
+    frames = doc["frames"]
+    k = next((i for i, f in enumerate(frames) if f["split"] == "test"), 0)
+    f = frames[k]
+    intr = Intrinsics(f["w"], f["h"], f["fl_x"], f["fl_y"], f["cx"], f["cy"], (0.0, 0.0, 0.0, 0.0, 0.0))
+    c2w = opencv_from_opengl(np.array(f["transform_matrix"], float))
+    fps = 1.0 / float(np.median(np.diff([fr["time"] for fr in frames])))
+    _, _, obj = load_ground_truth(capture)
+    truth = np.stack([render_object_rgba(obj, intr, c2w, f["time"] + j / fps, samples) for j in range(1, steps + 1)])
+    data = rssm.load_sequences(dataset, int(f["w"]))
+    vp = f["viewpoint"]
+    return {"first": data.rgba[k], "view": np.array([vp["azimuth_deg"], vp["elevation_deg"], vp["distance_m"]],
+                                                      np.float32), "truth": truth, "frame": k}
+
+
+def evaluate(run: Path, dataset: Path, still: dict | None, temperature: float, name: str) -> dict:
+    """Evaluate a run folder (again) at ``temperature``, into ``run/name``; the report's figures."""
     model = rssm.load_model(run)
-    data = rssm.load_sequences(ds, size)
-    rep = rssm.run_eval(model, data, run / "report-still",
-                        torch.load(run / "checkpoint.pt", weights_only=False)["history"], still_truth=still["truth"],
-                        still_start=(still["first"], still["view"]))
-    ev = rep.to_json()
-    return {"dataset_frames": len(data.rgba), "train_sequences": len(data.starts("train")),
-            "test_sequences": len(data.starts("test")), "render_seconds": round(render_s, 1),
-            "train_steps": meta["training"]["steps"], "train_minutes": round(meta["training"]["seconds"] / 60, 2),
-            "wall_minutes_train_and_eval": round(train_s / 60, 2), "threads": torch.get_num_threads(),
-            "mean_psnr_db": ev["mean_psnr_db"], "psnr_gain_db": ev["psnr_gain_db"], "mean_ssim": ev["mean_ssim"],
-            "psnr_per_step": ev["psnr_db"], "motion_still_truth": ev["motion"],
-            "motion_dataset_truth": meta["eval"]["motion"], "run": str(run)}
+    data = rssm.load_sequences(dataset, model.cfg.size)
+    ck = run / "checkpoint.pt"
+    history = torch.load(ck, weights_only=False)["history"] if ck.is_file() else []
+    kw = {} if still is None else {"still_truth": still["truth"], "still_start": (still["first"], still["view"])}
+    ev = rssm.run_eval(model, data, run / name, history, temperature=temperature, **kw).to_json()
+    return {"temperature": temperature, "mean_psnr_db": ev["mean_psnr_db"], "psnr_gain_db": ev["psnr_gain_db"],
+            "mean_ssim": ev["mean_ssim"], "psnr_per_step": ev["psnr_db"], "motion": ev["motion"],
+            "report": str(run / name)}
+
+
+def quality(dataset: Path, run: Path, capture: Path | None, minutes: float, steps: int | None, batch: int,
+            lr: float, temperature: float, train: bool) -> dict:
+    """Train on a preprocess dataset (unless ``train`` is off), then evaluate with the still-view truth."""
+    still = None
+    if capture is not None:
+        cache = run.parent / f".{run.name}.still.pt"
+        if not cache.is_file():
+            torch.save(still_truth(dataset, capture), cache)
+        still = torch.load(cache, weights_only=False)
+    out: dict = {"dataset": str(dataset), "threads": torch.get_num_threads(),
+                 "load_average_1min_before": round(os.getloadavg()[0], 2)}
+    if train:
+        t = time.perf_counter()
+        meta = rssm.train_run(dataset, run, rssm.RssmConfig(), rssm.TrainConfig(minutes, steps, batch=batch, lr=lr),
+                              overwrite=True, temperature=temperature)
+        out.update({"train_steps": meta["training"]["steps"],
+                    "train_minutes": round(meta["training"]["seconds"] / 60, 2),
+                    "wall_minutes_train_and_eval": round((time.perf_counter() - t) / 60, 2),
+                    "train_sequences": meta["training"]["train_sequences"],
+                    "test_sequences": meta["training"]["test_sequences"],
+                    "run_eval_motion_dataset_truth": meta["eval"]["motion"]})
+    else:
+        meta = json.loads((run / "run.json").read_text())
+        out.update({"train_steps": meta["training"]["steps"],
+                    "train_minutes": round(meta["training"]["seconds"] / 60, 2)})
+    out["load_average_1min_after"] = round(os.getloadavg()[0], 2)
+    if still is not None:
+        out["still_view_eval"] = evaluate(run, dataset, still, temperature, f"report-still-t{temperature:g}")
+    return out
 
 
 def main() -> None:
@@ -83,21 +123,23 @@ def main() -> None:
     s.add_argument("--threads", type=int, default=2)
     s.add_argument("--sizes", default="64,256")
     q = sub.add_parser("quality")
-    q.add_argument("--work", type=Path, default=Path("/tmp/dbb-bench-rssm"))
+    q.add_argument("dataset", type=Path, help="a dbb-capture preprocess output (crops.json)")
+    q.add_argument("--run", type=Path, required=True, help="run folder to write (or read with --no-train)")
+    q.add_argument("--capture", type=Path, default=None,
+                   help="the synthetic capture the dataset came from: its ground truth gives the still-view motion")
     q.add_argument("--minutes", type=float, default=15.0)
     q.add_argument("--steps", type=int, default=None)
-    q.add_argument("--seconds", type=float, default=60.0, help="length of the synthetic capture")
-    q.add_argument("--size", type=int, default=64)
-    q.add_argument("--batch", type=int, default=8)
+    q.add_argument("--batch", type=int, default=rssm.TrainConfig.batch)
     q.add_argument("--threads", type=int, default=1)
     q.add_argument("--lr", type=float, default=rssm.TrainConfig.lr)
-    q.add_argument("--run-name", default="run")
+    q.add_argument("--temperature", type=float, default=1.0, help="run-time sampling temperature")
+    q.add_argument("--no-train", action="store_true", help="only evaluate an existing run")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     if a.cmd == "speed":
         out = [speed(int(s)) for s in a.sizes.split(",")]
     else:
-        out = quality(a.work, a.minutes, a.seconds, a.size, a.batch, a.steps, a.lr, a.run_name)
+        out = quality(a.dataset, a.run, a.capture, a.minutes, a.steps, a.batch, a.lr, a.temperature, not a.no_train)
     print(json.dumps(out, indent=2))
 
 

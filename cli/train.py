@@ -79,9 +79,11 @@ def plenoctree(dataset, out, minutes, steps, downscale, resume, overwrite, mode,
 @click.option("--threads", type=click.IntRange(1, 256), default=None,
               help="CPU threads for torch (default: torch's choice).")
 @click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--temperature", type=click.FloatRange(0.0, 10.0), default=1.0, show_default=True,
+              help="Run-time sampling temperature of the stochastic state (0: its mean, which shrinks motion).")
 @click.option("--resume", is_flag=True, help="Continue from the run's last checkpoint.")
 @click.option("--overwrite", is_flag=True, help="Replace the run folder if it exists.")
-def rssm(dataset, out, minutes, steps, size, batch, threads, seed, resume, overwrite) -> None:
+def rssm(dataset, out, minutes, steps, size, batch, threads, seed, temperature, resume, overwrite) -> None:
     """Dynamic object: train a viewpoint-conditioned RSSM video predictor on DATASET (crops.json).
 
     Writes the weights, a TorchScript stepper and the evaluation (per-step PSNR/SSIM of 10-step
@@ -95,7 +97,7 @@ def rssm(dataset, out, minutes, steps, size, batch, threads, seed, resume, overw
     if threads:
         torch.set_num_threads(threads)
     meta = train_run(dataset, out, RssmConfig(size=int(size)), TrainConfig(minutes, steps, batch=batch, seed=seed),
-                     resume=resume, overwrite=overwrite)
+                     resume=resume, overwrite=overwrite, temperature=temperature)
     _print_rssm(out, meta["eval"], f"{meta['training']['steps']} steps in {meta['training']['seconds'] / 60:.1f} min")
 
 

@@ -39,6 +39,7 @@ import shutil
 import time
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
+from typing import List
 
 import cv2
 import numpy as np
@@ -76,6 +77,9 @@ class RssmConfig:
     kl_scale: float = 1.0
     overshoot_scale: float = 1.0   # latent overshooting along the open-loop rollout
     open_loop_scale: float = 1.0   # reconstruction of the open-loop (prior-only) frames
+    skip: bool = True              # decoder sees the context frame: its encoder maps (U-Net) and its
+                                   # pixels, warped by a predicted flow and blended by a predicted mask
+    max_flow: float = 0.5          # largest flow, in image half-widths (grid_sample units)
 
     def validate(self) -> None:
         if self.size not in SIZES:
@@ -87,6 +91,7 @@ class RssmConfig:
     @classmethod
     def from_json(cls, d: dict) -> RssmConfig:
         names = {f.name for f in fields(cls)}
+        d = {"skip": False, **d}           # runs written before the skip path had none
         return cls(**{k: v for k, v in d.items() if k in names})
 
 
@@ -131,7 +136,7 @@ def _dec_channels(cfg: RssmConfig) -> list[int]:
 
 
 class Encoder(nn.Module):
-    """Premultiplied RGBA (B, 4, S, S) in [0, 1] -> embedding (B, embed)."""
+    """Premultiplied RGBA (B, 4, S, S) in [0, 1] -> embedding (B, embed); also its feature maps."""
 
     def __init__(self, cfg: RssmConfig):
         super().__init__()
@@ -146,24 +151,91 @@ class Encoder(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return F.silu(self.out(self.convs(x - 0.5).flatten(1)))
 
+    def features(self, x: torch.Tensor) -> list[torch.Tensor]:
+        """Feature maps after each conv, coarsest first: [(B, C, 4, 4), (B, C', 8, 8), ..., (B, c, S/2, S/2)]."""
+        maps: list[torch.Tensor] = []
+        x = x - 0.5
+        i = 0
+        for layer in self.convs:
+            x = layer(x)
+            if i % 2 == 1:
+                maps.insert(0, x)
+            i += 1
+        return maps
+
 
 class Decoder(nn.Module):
-    """Features (B, deter + stoch + 4 * view_freqs) -> straight RGBA (B, 4, S, S) in [0, 1]."""
+    """Features (B, deter + stoch + 4 * view_freqs [+ 4 * view_freqs of the context view with
+    ``skip``]) -> premultiplied RGBA (B, 4, S, S) in [0, 1].
+
+    Without ``skip`` the frame is generated from the features alone. With ``skip`` (the context
+    frame's encoder maps ``ctx`` joined at each resolution, U-Net style) the last layer also
+    gives a flow and a mask: the frame is the context frame warped by the flow where the mask
+    is 1 and generated content where it is 0, so static and rigidly moving parts stay sharp
+    and only what the context frame cannot show is generated.
+    """
 
     def __init__(self, cfg: RssmConfig):
         super().__init__()
         ch = _dec_channels(cfg)
         self.c0 = ch[0]
-        self.fc = nn.Sequential(nn.Linear(cfg.deter + cfg.stoch + 4 * cfg.view_freqs, cfg.hidden), nn.SiLU(),
+        self.skip = bool(cfg.skip)
+        self.max_flow = float(cfg.max_flow)
+        # With the skip path the decoder also sees the context frame's viewpoint: warping that
+        # frame to the current view needs to know where it was seen from.
+        n_pe = 4 * cfg.view_freqs * (2 if self.skip else 1)
+        self.fc = nn.Sequential(nn.Linear(cfg.deter + cfg.stoch + n_pe, cfg.hidden), nn.SiLU(),
                                 nn.Linear(cfg.hidden, ch[0] * 16))
-        layers: list[nn.Module] = []
-        for c_in, c_out in zip(ch, ch[1:] + [4]):
-            layers += [nn.ConvTranspose2d(c_in, c_out, 4, 2, 1), nn.SiLU()]
-        self.convs = nn.Sequential(*layers[:-1])
+        enc = _enc_channels(cfg)[::-1] if self.skip else [0] * len(ch)      # at 4, 8, ..., S/2
+        n_out = 7 if self.skip else 4                                     # RGBA (+ mask, flow x, flow y)
+        self.ups = nn.ModuleList([nn.ConvTranspose2d(c_in + c_skip, c_out, 4, 2, 1)
+                                  for c_in, c_skip, c_out in zip(ch, enc, ch[1:] + [n_out])])
+        if self.skip:                     # start close to copying the context frame, unwarped
+            with torch.no_grad():
+                last = self.ups[-1]
+                last.weight[:, 4:].mul_(0.1)
+                last.bias[4] = 1.0
+                last.bias[5:] = 0.0
 
-    def forward(self, feat: torch.Tensor) -> torch.Tensor:
-        x = self.fc(feat).view(-1, self.c0, 4, 4)
-        return torch.sigmoid(self.convs(F.silu(x)))
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kw):
+        # Runs written before the skip path: ``convs`` was a Sequential (conv, SiLU, conv, ...).
+        for k in [k for k in state_dict if k.startswith(prefix + "convs.")]:
+            i, name = k[len(prefix) + 6:].split(".", 1)
+            state_dict[f"{prefix}ups.{int(i) // 2}.{name}"] = state_dict.pop(k)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kw)
+
+    def forward(self, feat: torch.Tensor, ctx: list[torch.Tensor], ctx_pm: torch.Tensor) -> torch.Tensor:
+        """``ctx``: context maps per frame (coarsest first, as :meth:`Encoder.features`), ``ctx_pm``
+        the premultiplied context frame (N, 4, S, S); both ignored without ``skip``."""
+        x = F.silu(self.fc(feat).view(-1, self.c0, 4, 4))
+        n = len(self.ups)
+        i = 0
+        for up in self.ups:
+            if self.skip:
+                x = torch.cat([x, ctx[i]], 1)
+            x = up(x)
+            if i < n - 1:
+                x = F.silu(x)
+            i += 1
+        if not self.skip:
+            rgba = torch.sigmoid(x)
+            return torch.cat([rgba[:, :3] * rgba[:, 3:4], rgba[:, 3:4]], 1)
+        gen = torch.sigmoid(x[:, :4])
+        gen = torch.cat([gen[:, :3] * gen[:, 3:4], gen[:, 3:4]], 1)
+        mask = torch.sigmoid(x[:, 4:5])
+        flow = torch.tanh(x[:, 5:7]) * self.max_flow
+        S = x.shape[-1]
+        lin = (torch.arange(S, dtype=x.dtype, device=x.device) * 2.0 + 1.0) / S - 1.0
+        gy, gx = torch.meshgrid(lin, lin, indexing="ij")
+        grid = torch.stack([gx, gy], -1)[None] + flow.permute(0, 2, 3, 1)
+        warped = F.grid_sample(ctx_pm, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+        return mask * warped + (1.0 - mask) * gen
+
+
+def straight(pm: torch.Tensor) -> torch.Tensor:
+    """Premultiplied RGBA (B, 4, S, S) -> straight RGBA (colour 0 where alpha is ~0)."""
+    a = pm[:, 3:4]
+    return torch.cat([(pm[:, :3] / a.clamp(min=1e-4)).clamp(0.0, 1.0) * (a > 1e-4).to(pm.dtype), a], 1)
 
 
 def _gauss(stats: torch.Tensor, min_std: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -197,8 +269,11 @@ class Rssm(nn.Module):
     def post_stats(self, h: torch.Tensor, emb: torch.Tensor, pe: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return _gauss(self.post(torch.cat([h, emb, pe], -1)), self.cfg.min_std)
 
-    def decode(self, h: torch.Tensor, z: torch.Tensor, pe: torch.Tensor) -> torch.Tensor:
-        return self.decoder(torch.cat([h, z, pe], -1))
+    def decode(self, h: torch.Tensor, z: torch.Tensor, pe: torch.Tensor, ctx: list[torch.Tensor],
+               ctx_pm: torch.Tensor, ctx_pe: torch.Tensor) -> torch.Tensor:
+        """Premultiplied RGBA (N, 4, S, S); ``ctx``/``ctx_pm``/``ctx_pe`` of the context frame, one per row."""
+        feat = torch.cat([h, z, pe, ctx_pe], -1) if self.cfg.skip else torch.cat([h, z, pe], -1)
+        return self.decoder(feat, ctx, ctx_pm)
 
 
 # --------------------------------------------------------------------------- losses
@@ -212,9 +287,9 @@ def premultiply(rgba: torch.Tensor) -> torch.Tensor:
     return torch.cat([rgba[..., :3, :, :] * rgba[..., 3:4, :, :], rgba[..., 3:4, :, :]], -3)
 
 
-def _rec_loss(pred_straight: torch.Tensor, target_pm: torch.Tensor) -> torch.Tensor:
+def _rec_loss(pred_pm: torch.Tensor, target_pm: torch.Tensor) -> torch.Tensor:
     """Squared error summed over pixels (Gaussian, unit variance), mean over frames."""
-    return ((premultiply(pred_straight) - target_pm) ** 2).flatten(1).sum(1).mean()
+    return ((pred_pm - target_pm) ** 2).flatten(1).sum(1).mean()
 
 
 def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[torch.Tensor, dict]:
@@ -227,6 +302,12 @@ def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[to
     B, T1 = x.shape[:2]
     pe = view_encoding(views, cfg.view_freqs)
     emb = model.encoder(x.flatten(0, 1)).view(B, T1, -1)
+    # Context of every decoded frame: frame 0's encoder maps and pixels, repeated along time.
+    ctx0 = model.encoder.features(x[:, 0]) if cfg.skip else []
+    ctx_all = [c.repeat_interleave(T1, 0) for c in ctx0]
+    ctx_ol = [c.repeat_interleave(T1 - 1, 0) for c in ctx0]
+    pm_all, pm_ol = x[:, 0].repeat_interleave(T1, 0), x[:, 0].repeat_interleave(T1 - 1, 0)
+    pe_all, pe_ol = pe[:, 0].repeat_interleave(T1, 0), pe[:, 0].repeat_interleave(T1 - 1, 0)
     h = x.new_zeros(B, cfg.deter)
     hs, zs, kl_dyn, kl_rep, post_m, post_s = [], [], [], [], [], []
     z = None
@@ -247,7 +328,7 @@ def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[to
     rep = torch.clamp(torch.stack(kl_rep), min=cfg.free_nats).mean()
     kl = cfg.kl_balance * dyn + (1 - cfg.kl_balance) * rep
     feat_h, feat_z = torch.stack(hs, 1).flatten(0, 1), torch.stack(zs, 1).flatten(0, 1)
-    rec = _rec_loss(model.decode(feat_h, feat_z, pe.flatten(0, 1)), x.flatten(0, 1))
+    rec = _rec_loss(model.decode(feat_h, feat_z, pe.flatten(0, 1), ctx_all, pm_all, pe_all), x.flatten(0, 1))
     # Open loop, the way it runs: from the first frame's posterior sample, prior samples only.
     ho, zo = hs[0], zs[0]
     ol_h, ol_z, over = [], [], []
@@ -260,7 +341,8 @@ def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[to
         over.append(_kl(post_m[t].detach(), post_s[t].detach(), pm, ps).mean())
     overshoot = torch.stack(over).mean()
     ol = _rec_loss(model.decode(torch.stack(ol_h, 1).flatten(0, 1), torch.stack(ol_z, 1).flatten(0, 1),
-                                pe[:, 1:].flatten(0, 1)), x[:, 1:].flatten(0, 1))
+                                pe[:, 1:].flatten(0, 1), ctx_ol, pm_ol, pe_ol),
+                x[:, 1:].flatten(0, 1))
     loss = rec + cfg.kl_scale * kl + cfg.overshoot_scale * overshoot + cfg.open_loop_scale * ol
     parts = {"loss": loss.item(), "rec": rec.item(), "open_loop": ol.item(), "kl_dyn": dyn.item(),
              "kl_rep": torch.stack(kl_rep).mean().item(), "overshoot": overshoot.item()}
@@ -272,7 +354,9 @@ class Stepper(nn.Module):
     """Run-time API, TorchScript-exportable.
 
     ``start(rgba, view) -> (h, z)``: the state after seeing the first frame (straight RGBA
-    (B, 4, S, S) in [0, 1], view (B, 3) = [azimuth_deg, elevation_deg, distance_m]).
+    (B, 4, S, S) in [0, 1], view (B, 3) = [azimuth_deg, elevation_deg, distance_m]). With the
+    skip path the stepper also keeps that frame (and its encoder maps) as the context of the
+    following steps, so one stepper runs one rollout (batch) at a time.
     ``step(h, z, view) -> (h, z, rgba)``: advance one frame (the transition ignores ``view``),
     sample the stochastic state (``temperature`` scales its std; 0 gives the mean) and decode
     the next straight RGBA frame as seen from ``view``.
@@ -290,7 +374,11 @@ class Stepper(nn.Module):
         self.freqs = int(model.cfg.view_freqs)
         self.deter = int(model.cfg.deter)
         self.size = int(model.cfg.size)
+        self.skip = bool(model.cfg.skip)
         self.temperature = float(temperature)
+        self.ctx = []                  # the context frame's encoder maps (skip path), set by start()
+        self.ctx_pm = torch.zeros(0)
+        self.ctx_pe = torch.zeros(0)
 
     def _pe(self, view: torch.Tensor) -> torch.Tensor:
         ang = view[:, :2] * (math.pi / 180.0)
@@ -302,6 +390,10 @@ class Stepper(nn.Module):
     def start(self, rgba: torch.Tensor, view: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         pm = torch.cat([rgba[:, :3] * rgba[:, 3:4], rgba[:, 3:4]], 1)
         emb = self.encoder(pm)
+        if self.skip:
+            self.ctx = self.encoder.features(pm)
+            self.ctx_pm = pm
+            self.ctx_pe = self._pe(view)
         h = torch.zeros(rgba.shape[0], self.deter, dtype=rgba.dtype, device=rgba.device)
         mean, raw = self.post(torch.cat([h, emb, self._pe(view)], -1)).chunk(2, -1)
         std = F.softplus(raw) + self.min_std
@@ -313,8 +405,12 @@ class Stepper(nn.Module):
         mean, raw = self.prior(h).chunk(2, -1)
         std = F.softplus(raw) + self.min_std
         z = mean + self.temperature * std * torch.randn_like(std)
-        rgba = self.decoder(torch.cat([h, z, self._pe(view)], -1))
-        return h, z, rgba
+        if self.skip:
+            feat = torch.cat([h, z, self._pe(view), self.ctx_pe], -1)
+        else:
+            feat = torch.cat([h, z, self._pe(view)], -1)
+        pm = self.decoder(feat, self.ctx, self.ctx_pm)
+        return h, z, straight(pm)
 
     def forward(self, h: torch.Tensor, z: torch.Tensor, view: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         return self.step(h, z, view)
@@ -322,7 +418,9 @@ class Stepper(nn.Module):
 
 def script_stepper(model: Rssm, temperature: float = 1.0) -> torch.jit.ScriptModule:
     """The TorchScript stepper of ``model`` (on CPU, eval mode)."""
-    return torch.jit.script(Stepper(model, temperature).cpu().eval())
+    st = Stepper(model, temperature).cpu().eval()
+    st.ctx = torch.jit.Attribute([], List[torch.Tensor])     # TorchScript cannot type an empty list
+    return torch.jit.script(st)
 
 
 @torch.no_grad()
@@ -747,8 +845,11 @@ def _grid(rows: list[np.ndarray]) -> np.ndarray:
 
 # --------------------------------------------------------------------------- run folder
 def train_run(dataset: Path, out: Path, cfg: RssmConfig, tcfg: TrainConfig, resume: bool = False,
-              overwrite: bool = False, quiet: bool = False) -> dict:
-    """Train on ``dataset`` and write the run folder ``out`` atomically; returns run.json."""
+              overwrite: bool = False, quiet: bool = False, temperature: float = 1.0) -> dict:
+    """Train on ``dataset`` and write the run folder ``out`` atomically; returns run.json.
+
+    ``temperature``: the stepper's sampling temperature (scales the prior's std at run time).
+    """
     out = Path(out)
     check_run_output(out, overwrite, resume)
     tcfg = replace(tcfg, minutes=training_minutes(tcfg.minutes, tcfg.steps, default=15.0))
@@ -780,20 +881,20 @@ def train_run(dataset: Path, out: Path, cfg: RssmConfig, tcfg: TrainConfig, resu
 
         state = train(state, data, tcfg, ckpt, on_step)
         prog.update(task, completed=100)
-    meta = write_run(out, state, data, dataset, tcfg, ckpt, wall=time.perf_counter() - t0)
+    meta = write_run(out, state, data, dataset, tcfg, ckpt, wall=time.perf_counter() - t0, temperature=temperature)
     shutil.rmtree(work, ignore_errors=True)
     return meta
 
 
 def write_run(out: Path, state: TrainState, data: SequenceData, dataset: Path, tcfg: TrainConfig,
-              ckpt: Path, wall: float) -> dict:
+              ckpt: Path, wall: float, temperature: float = 1.0) -> dict:
     model = state.model.cpu().eval()
     cfg = model.cfg
     with atomic_dir(out, overwrite=True) as tmp:
         shutil.copyfile(ckpt, tmp / "checkpoint.pt")
         torch.save({"config": asdict(cfg), "state_dict": model.state_dict()}, tmp / "model.pt")
-        script_stepper(model).save(str(tmp / "stepper.ts"))
-        report = run_eval(model, data, tmp / "report", state.history)
+        script_stepper(model, temperature).save(str(tmp / "stepper.ts"))
+        report = run_eval(model, data, tmp / "report", state.history, temperature=temperature)
         meta = {
             "format": RUN_FORMAT, "version": 1, "kind": "dynamic",
             "dataset": str(Path(dataset).resolve()), "dataset_file": data.source.name,
@@ -805,7 +906,7 @@ def write_run(out: Path, state: TrainState, data: SequenceData, dataset: Path, t
                                 "step": "(h, z, view (B,3)) -> (h, z, rgba (B,4,S,S) straight RGBA 0..1)"},
                         "view": "[azimuth_deg, elevation_deg, distance_m] of the camera from the object centre "
                                 "(crops.json viewpoint)",
-                        "frame_size": cfg.size, "fps": _fps(data), "temperature": 1.0},
+                        "frame_size": cfg.size, "fps": _fps(data), "temperature": temperature},
             "checkpoint": "checkpoint.pt",
             "training": {"steps": state.step, "seconds": round(state.seconds, 1),
                          "wall_seconds_this_session": round(wall, 1), "budget_minutes": tcfg.minutes,
@@ -827,9 +928,10 @@ def _fps(data: SequenceData) -> float | None:
     return round(1.0 / float(np.median(np.diff(data.times))), 4)
 
 
-def run_eval(model: Rssm, data: SequenceData, folder: Path, history: list[dict], **kw) -> EvalReport:
-    """Evaluate ``model`` on ``data`` and write ``eval.json`` and the figures into ``folder``."""
-    report, figs = evaluate(Stepper(model.cpu().eval()), data, **kw)
+def run_eval(model: Rssm, data: SequenceData, folder: Path, history: list[dict], temperature: float = 1.0,
+             **kw) -> EvalReport:
+    """Evaluate ``model`` (sampling at ``temperature``) on ``data``; ``eval.json`` and figures into ``folder``."""
+    report, figs = evaluate(Stepper(model.cpu().eval(), temperature), data, **kw)
     folder.mkdir(parents=True, exist_ok=True)
     write_json(folder / "eval.json", report.to_json())
     write_figures(report, figs, history, folder)
@@ -864,7 +966,7 @@ def eval_run(run: Path, dataset: Path | None = None) -> EvalReport:
     history = torch.load(ck, map_location="cpu", weights_only=False)["history"] if ck.is_file() else []
     tmp = run / ".report.partial"
     shutil.rmtree(tmp, ignore_errors=True)
-    report = run_eval(model, data, tmp, history)
+    report = run_eval(model, data, tmp, history, temperature=float(meta["stepper"].get("temperature", 1.0)))
     shutil.rmtree(run / "report", ignore_errors=True)
     tmp.replace(run / "report")
     meta["eval"] = report.to_json()

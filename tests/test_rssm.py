@@ -78,6 +78,7 @@ def test_transition_does_not_depend_on_the_viewpoint():
     assert m.z_in[0].in_features == SMALL.stoch and m.gru.input_size == SMALL.hidden
     assert m.prior[0].in_features == SMALL.deter
     st = rssm.Stepper(m)
+    st.start(torch.rand(1, 4, 32, 32), torch.tensor([[0.0, 20.0, 0.6]]))    # the context frame
     h0, z0 = torch.randn(1, 16), torch.randn(1, 16)
     torch.manual_seed(3)
     ha, za, xa = st.step(h0, z0, torch.tensor([[0.0, 20.0, 0.6]]))
