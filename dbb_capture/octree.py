@@ -287,7 +287,7 @@ class TreeRenderer:
 
     ``backend="numba"`` (the default on the CPU, :mod:`.octree_cpu`) walks every ray exactly
     cell by cell, integrates each leaf over the length the ray spends in it, skips empty
-    32^3 blocks and 8^3 bricks, and stops a ray once its transmittance is under ``t_min``.
+    8^3-leaf bricks (whole empty cubes of them at once), and stops a ray once its transmittance is under ``t_min``.
     ``backend="torch"`` (the default on CUDA) is vectorized PyTorch: a coarse pass finds, per
     ray, the stretch that crosses occupied bricks; the fine pass samples it every ``step``
     leaves in chunks of ``chunk_samples``, composites front to back
@@ -353,13 +353,13 @@ class TreeRenderer:
         Colour rows are stored brick by brick, so the leaves a ray bundle meets share cache
         lines; each leaf's density and row share 8 bytes of a dense per-brick table (0 = empty).
         """
-        from .octree_cpu import BLOCK_SHIFT
+        from scipy.ndimage import distance_transform_cdt
 
         g = self.tree.data.reshape(-1, self.tree.data_dim)
-        nk = max(1, self.L >> BLOCK_SHIFT)
-        blocks = np.zeros(nk ** 3, np.uint8)
-        kc = cells >> BLOCK_SHIFT
-        blocks[(kc[:, 0] * nk + kc[:, 1]) * nk + kc[:, 2]] = 1
+        empty = (self._grid < 0).reshape((self.nb,) * 3)
+        skip = np.full(empty.shape, 255, np.uint8)
+        if not empty.all():
+            skip[...] = np.minimum(distance_transform_cdt(empty, metric="chessboard"), 255)
         lc = cells % BRICK
         slot = binv.astype(np.int64) * BRICK ** 3 + (lc[:, 0] * BRICK + lc[:, 1]) * BRICK + lc[:, 2]
         order = np.argsort(slot, kind="stable")
@@ -378,7 +378,7 @@ class TreeRenderer:
             coef[:, :g.shape[1] - 1] = g[rows[order], :-1].astype(np.float16).view(np.uint16)
         return {"L": self.L, "lo": (cells.min(0) if len(cells) else np.zeros(3)).astype(np.float64),
                 "hi": (cells.max(0) + 1 if len(cells) else np.zeros(3)).astype(np.float64),
-                "blocks": blocks, "nblk": nk, "bricks": self._grid, "nbrk": self.nb, "leaf": leaf,
+                "skip": skip.reshape(-1), "bricks": self._grid, "nbrk": self.nb, "leaf": leaf,
                 "leaf_sigma": leaf.view(np.float32), "coef": coef, "degree": self.degree,
                 "sigmoid": self.tree.colour_activation == "sigmoid"}
 
@@ -417,7 +417,7 @@ class TreeRenderer:
             cache = self._colour_cache
         args = (np.ascontiguousarray(origins, np.float64), np.ascontiguousarray(dirs, np.float32),
                 np.ascontiguousarray(rot, np.float64), self.inv, self.offset, g["L"], g["lo"], g["hi"],
-                g["blocks"], g["nblk"], g["bricks"], g["nbrk"], g["leaf"], g["leaf_sigma"], g["coef"], HALF_SCALE,
+                g["skip"], g["bricks"], g["nbrk"], g["leaf"], g["leaf_sigma"], g["coef"], HALF_SCALE,
                 g["degree"], g["sigmoid"], float(self.t_min), self._w_eps)
         starts = itertools.count(0, _RAY_CHUNK)
 

@@ -2,8 +2,9 @@
 
 The tree is piecewise constant, so a ray is integrated exactly cell by cell: each leaf it
 crosses over a length ``s`` (world units) contributes ``alpha = 1 - exp(-sigma * s)``.
-Empty space is skipped at two coarser levels: 32^3-leaf blocks (a dense byte grid) and
-8^3-leaf bricks (the brick grid the leaf table is indexed through). Every step recomputes
+Empty space is skipped brick by brick (8^3 leaves, the unit the leaf table is indexed by),
+and many bricks at once: each empty brick knows its chessboard distance to the nearest
+occupied one, so a ray leaves the whole empty cube around it in one step. Every step recomputes
 the cell from a point nudged just past the current ``t``, so the walk never drifts off the
 lattice through rounding. The kernel releases the GIL; the caller runs ray ranges on
 Python threads that pull work as they free up (dynamic balance on a shared machine).
@@ -19,7 +20,6 @@ import numpy as np
 from .fields import _C0, _C1, _C2, _C3
 
 BRICK_SHIFT = 3      # 8^3 leaves per brick (the leaf table's unit)
-BLOCK_SHIFT = 5      # 32^3 leaves per skip block
 _FAR = 1e30          # 1 / direction component when that component is ~0
 
 # No nnan/ninf: exits of axis-parallel rays are huge finite numbers and must compare right.
@@ -106,6 +106,16 @@ def _write(out: np.ndarray, p: int, mode: int, bg: np.ndarray, r: float, g: floa
 
 
 @numba.njit(cache=True, fastmath=_FM, nogil=True)
+def _span_exit(ax: int, ay: int, az: int, bx: int, by: int, bz: int, size: float, px: float, py: float,
+               pz: float, hx: int, hy: int, hz: int, ix: float, iy: float, iz: float) -> float:
+    """Ray parameter where the ray P + t D leaves box ``a * size .. b * size``."""
+    tx = ((bx if hx else ax) * size - px) * ix
+    ty = ((by if hy else ay) * size - py) * iy
+    tz = ((bz if hz else az) * size - pz) * iz
+    return min(tx, min(ty, tz))
+
+
+@numba.njit(cache=True, fastmath=_FM, nogil=True)
 def _box_exit(cx: int, cy: int, cz: int, size: float, px: float, py: float, pz: float,
               hx: int, hy: int, hz: int, ix: float, iy: float, iz: float) -> float:
     """Ray parameter where the ray P + t D leaves box ``c * size .. (c + 1) * size``;
@@ -118,7 +128,7 @@ def _box_exit(cx: int, cy: int, cz: int, size: float, px: float, py: float, pz: 
 
 @numba.njit(cache=True, fastmath=_FM, nogil=True)
 def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.ndarray, offset: np.ndarray,
-               L: int, lo: np.ndarray, hi: np.ndarray, blocks: np.ndarray, nblk: int, bricks: np.ndarray,
+               L: int, lo: np.ndarray, hi: np.ndarray, skip: np.ndarray, bricks: np.ndarray,
                nbrk: int, leaf_row: np.ndarray, leaf_sigma: np.ndarray, coef: np.ndarray, p2: np.ndarray, degree: int,
                sigmoid: bool,
                t_min: float, w_eps: float, start: int, end: int, slot: int, frame: int, cache: np.ndarray,
@@ -128,8 +138,9 @@ def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.n
 
     ``origins`` (1 or N, 3) world; ``dirs`` (N, 3) unit, turned to world by ``rot`` (3, 3);
     the tree maps world x to lattice ``(offset + x * inv) * L``. ``lo``/``hi`` (3,) bound the
-    occupied leaves (lattice units). ``blocks`` (nblk^3,) uint8 marks 32^3-leaf blocks with
-    leaves, ``bricks`` (nbrk^3,) int32 the brick of each 8^3-leaf brick (-1 empty);
+    occupied leaves (lattice units). ``skip`` (nbrk^3,) uint8 is the chessboard distance, in
+    bricks, of each 8^3-leaf brick to the nearest occupied one (0 occupied), ``bricks``
+    (nbrk^3,) int32 the brick of each 8^3-leaf brick (-1 empty);
     ``leaf_row`` (n_bricks * 512, 2) int32 holds per leaf its density (float32 bits, read
     through the float32 view ``leaf_sigma`` of the same memory; 0 = empty) and its data row,
     so one cache line serves both.
@@ -141,7 +152,6 @@ def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.n
     thread owns a slot.
     """
     nb = (degree + 1) * (degree + 1)
-    bsz = float(1 << BLOCK_SHIFT)
     rsz = float(1 << BRICK_SHIFT)
     shb = np.zeros(16)
     for r in range(start, end):
@@ -180,14 +190,14 @@ def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.n
             cx = min(max(int(math.floor(px + tt * dx)), 0), L - 1)
             cy = min(max(int(math.floor(py + tt * dy)), 0), L - 1)
             cz = min(max(int(math.floor(pz + tt * dz)), 0), L - 1)
-            kx, ky, kz = cx >> BLOCK_SHIFT, cy >> BLOCK_SHIFT, cz >> BLOCK_SHIFT
-            if blocks[(kx * nblk + ky) * nblk + kz] == 0:
-                t = max(_box_exit(kx, ky, kz, bsz, px, py, pz, hx, hy, hz, ix, iy, iz), tt)
-                continue
             kx, ky, kz = cx >> BRICK_SHIFT, cy >> BRICK_SHIFT, cz >> BRICK_SHIFT
-            brick = bricks[(kx * nbrk + ky) * nbrk + kz]
+            kb = (kx * nbrk + ky) * nbrk + kz
+            brick = bricks[kb]
             if brick < 0:
-                t = max(_box_exit(kx, ky, kz, rsz, px, py, pz, hx, hy, hz, ix, iy, iz), tt)
+                # Every brick within chessboard distance skip - 1 is empty: leave that cube.
+                e = skip[kb] - 1
+                t = max(_span_exit(kx - e, ky - e, kz - e, kx + e + 1, ky + e + 1, kz + e + 1, rsz,
+                                   px, py, pz, hx, hy, hz, ix, iy, iz), tt)
                 continue
             # Occupied brick: walk its leaves incrementally (Amanatides-Woo).
             base = brick << 9
