@@ -15,9 +15,6 @@ deadlock under ``fork``).
 from __future__ import annotations
 
 import math
-import multiprocessing as mp
-import queue as queue_mod
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
@@ -28,6 +25,7 @@ from .board import BoardSpec
 from .cameras import Intrinsics, invert_rigid, rigid
 from .errors import DbbError
 from .io import FootageSource, blurry_mask, prefetched, sharpness, to_gray8
+from .parallel import map_spawned, report, split
 
 
 # --------------------------------------------------------------------------- detection
@@ -205,21 +203,10 @@ class _Segment:
     cfg: DetectorConfig
 
 
-_progress_queue = None  # set in each worker process by _init_worker
-
-
-def _init_worker(queue) -> None:
-    global _progress_queue
-    _progress_queue = queue
-    cv2.setNumThreads(1)  # one process per core already
-
-
 def _detect_segment(seg: _Segment) -> list[Detection]:
     """Worker: decode and detect one contiguous segment (runs in a spawned process)."""
     seg.source.single_thread = True
-    q = _progress_queue
-    return detect_frames(prefetched(seg.source.read(seg.indices, gray=True)), seg.board, seg.cfg,
-                         (lambda: q.put(1)) if q is not None else None)
+    return detect_frames(prefetched(seg.source.read(seg.indices, gray=True)), seg.board, seg.cfg, report)
 
 
 def detect_footage(source: FootageSource, indices: Sequence[int], board: BoardSpec,
@@ -234,23 +221,8 @@ def detect_footage(source: FootageSource, indices: Sequence[int], board: BoardSp
     if workers == 1:
         return detect_frames(prefetched(source.read(indices, gray=True)), board, cfg,
                              (lambda: tick(1)) if tick else None)
-    chunks = [tuple(c.tolist()) for c in np.array_split(np.asarray(indices), workers)]
-    ctx = mp.get_context("spawn")
-    queue = ctx.Queue()
-    with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
-                             initargs=(queue,)) as pool:
-        futures = [pool.submit(_detect_segment, _Segment(source, c, board, cfg)) for c in chunks]
-        while True:
-            try:
-                queue.get(timeout=0.1)
-            except queue_mod.Empty:
-                if all(f.done() for f in futures):
-                    break
-                continue
-            if tick:
-                tick(1)
-        results = [f.result() for f in futures]
-    queue.close()
+    segments = [_Segment(source, c, board, cfg) for c in split(indices, workers)]
+    results = map_spawned(_detect_segment, segments, workers, tick)
     return [d for r in results for d in r]
 
 

@@ -342,39 +342,92 @@ class CropsOutput:
     stats: dict
 
 
+@dataclass(frozen=True)
+class _CropSegment:
+    """One worker's share of the crops stage: contiguous frames and everything to process them."""
+
+    source: FootageSource
+    c2w: dict                    # frame index -> (4, 4) OpenCV c2w
+    intr: Intrinsics             # of the footage (distortion included)
+    frame_intr: Intrinsics       # of the undistorted frames (masks are drawn there)
+    sphere: ObjectSphere
+    size: int
+    fill: float
+    matte: MatteConfig
+    model: Path                  # background/field.pt
+    out: Path
+    sheet_at: frozenset
+
+
+@dataclass(frozen=True)
+class _CropResult:
+    index: int
+    cam: Any
+    touches_border: bool
+    coverage: float
+    sheet_row: np.ndarray | None
+
+
+_MODELS: dict = {}  # background model per path, loaded once per process
+
+
+def _crop_segment(seg: _CropSegment, tick: Callable[[int], None] | None = None) -> list[_CropResult]:
+    """Crop, predict, matte and write the frames of one segment (in this or a spawned process)."""
+    from .parallel import report
+
+    tick = tick or report
+    if seg.model not in _MODELS:
+        _MODELS[seg.model] = BackgroundModel.load(seg.model)
+    model = _MODELS[seg.model]
+    sp, out, prev = seg.sphere, [], None
+    for f in seg.source.read(sorted(seg.c2w)):
+        c2w = seg.c2w[f.index]
+        oc = object_crop(f.image, seg.intr, c2w, sp.center, sp.radius, sp.up, seg.size, seg.fill,
+                         model.render, seg.matte)
+        _write_png(seg.out / f"crops/{f.name}.png", cv2.cvtColor(oc.rgba, cv2.COLOR_RGBA2BGRA))
+        _write_png(seg.out / f"masks/{f.name}.png", alpha_in_frame(oc.rgba[..., 3], oc.cam, seg.frame_intr, c2w))
+        row = _sheet_row(f.image, seg.intr, c2w, sp.center, oc, prev) if f.index in seg.sheet_at else None
+        out.append(_CropResult(f.index, oc.cam, oc.touches_border, float(oc.rgba[..., 3].mean()) / 255.0, row))
+        prev = oc.rgba
+        tick(1)
+    return out
+
+
 def crops_stage(ctx: StageContext, bg: BackgroundOutput) -> CropsOutput:
-    """Every posed frame -> RGBA crop; writes crops/, masks/, crops.json, dataset.json, contact_sheet.png."""
+    """Every posed frame -> RGBA crop; writes crops/, masks/, crops.json, dataset.json, contact_sheet.png.
+
+    With ``workers`` > 1 and 40+ frames, contiguous segments go to spawned processes.
+    """
+    from .parallel import map_spawned, split
+
     inp, cfg, out = ctx.inputs, ctx.cfg, ctx.out
     poses, sphere = bg.poses, bg.sphere
-    src_intr = poses.run.intrinsics
     posed = poses.run.posed
-    by_index = {p.index: p for p in posed}
-    {p.index: im for p, im in zip(posed, poses.images)}
     splits = split_by_time(np.array([p.time for p in posed]), cfg.test_fraction)
-    split_of = {p.index: sp for p, sp in zip(posed, splits)}
     (out / "crops").mkdir()
     (out / "masks").mkdir()
-    records: list[CropRecord] = []
-    sheet_rows: list[np.ndarray] = []
-    sheet_at = set(np.linspace(0, len(posed) - 1, min(8, len(posed))).round().astype(int).tolist())
-    coverage, prev = [], None
+    indices = [p.index for p in posed]
+    sheet_at = frozenset(indices[i] for i in np.linspace(0, len(posed) - 1, min(8, len(posed))).round().astype(int))
+    c2w = {p.index: p.c2w for p in posed}
+    workers = max(1, min(cfg.workers, len(indices) // 20))
+
+    def segment(idx) -> _CropSegment:
+        return _CropSegment(inp.footage, {i: c2w[i] for i in idx}, poses.run.intrinsics, poses.intrinsics, sphere,
+                            cfg.crop_size, cfg.crop_fill, cfg.matte, out / "background" / "field.pt", out, sheet_at)
+
     with progress(transient=True) as prog:
         task = prog.add_task("crop and matte", total=len(posed), info="")
-        for k, f in enumerate(inp.footage.read(sorted(by_index))):
-            p = by_index[f.index]
-            oc = object_crop(f.image, src_intr, p.c2w, sphere.center, sphere.radius, sphere.up,
-                             cfg.crop_size, cfg.crop_fill, bg.model.render, cfg.matte)
-            rel = f"crops/{f.name}.png"
-            _write_png(out / rel, cv2.cvtColor(oc.rgba, cv2.COLOR_RGBA2BGRA))
-            mask = alpha_in_frame(oc.rgba[..., 3], oc.cam, poses.intrinsics, p.c2w)
-            _write_png(out / f"masks/{f.name}.png", mask)
-            records.append(CropRecord(rel, oc.cam, f.index, p.time, str(split_of[f.index]), oc.touches_border,
-                                      mask_path=None))
-            coverage.append(float(oc.rgba[..., 3].mean()) / 255.0)
-            if k in sheet_at:
-                sheet_rows.append(_sheet_row(f.image, src_intr, p.c2w, sphere.center, oc, prev))
-            prev = oc.rgba
-            prog.advance(task)
+        if workers > 1:
+            parts = map_spawned(_crop_segment, [segment(c) for c in split(indices, workers)], workers,
+                                lambda n: prog.advance(task, n))
+        else:
+            _MODELS[out / "background" / "field.pt"] = bg.model
+            parts = [_crop_segment(segment(indices), lambda n: prog.advance(task, n))]
+    results = [r for part in parts for r in part]
+    records = [CropRecord(f"crops/{p.name}.png", r.cam, p.index, p.time, str(sp), r.touches_border)
+               for p, sp, r in zip(posed, splits, results)]
+    coverage = [r.coverage for r in results]
+    sheet_rows = [r.sheet_row for r in results if r.sheet_row is not None]
     doc = crops_json(records, sphere.center, sphere.radius, sphere.up, cfg.crop_size, cfg.crop_fill,
                      cfg.sequence_length)
     doc["note"] = "crop cameras: OpenGL camera-to-world, ChArUco board frame, metres; straight RGBA crops"
