@@ -9,8 +9,8 @@ cd "$(dirname "$0")/.."
 ./scripts/setup.sh
 export PATH="$PWD/.venv/bin:$PATH"
 OUT=${1:-out/demo}
-BG=${DBB_BG_MINUTES:-1}
-TRAIN=${DBB_TRAIN_MINUTES:-2.5}
+BG=${DBB_BG_MINUTES:-0.75}
+TRAIN=${DBB_TRAIN_MINUTES:-2}
 mkdir -p "$OUT"
 start=$SECONDS
 made=()
