@@ -739,6 +739,13 @@ def evaluate(stepper, data: SequenceData, max_windows: int = 64, rollout_steps: 
     ss = {k: [float(np.mean([ssim(m[w, t], truth[w, t + 1]) for w in range(len(starts))])) for t in range(L - 1)]
           for k, m in methods.items()}
     # Long rollouts at a still viewpoint.
+    truth_src = "rendered at the still viewpoint"
+    if still_truth is None and fixed_camera(data) and len(data.rgba) > rollout_steps:
+        # A fixed camera's footage is its own still-viewpoint truth: start at the first test
+        # frame when enough frames follow it, otherwise as late as possible.
+        k = min(int(starts[0]) if split == "test" else 0, len(data.rgba) - rollout_steps - 1)
+        still_start, still_truth = (data.rgba[k], data.views[k]), data.rgba[k + 1:k + 1 + rollout_steps]
+        truth_src = f"the footage itself, frames {k + 1}-{k + rollout_steps} (fixed camera)"
     if still_start is not None:
         f0 = torch.from_numpy(still_start[0][None]).permute(0, 3, 1, 2).float() / 255.0
         v0 = torch.from_numpy(np.asarray(still_start[1], np.float32)[None])
@@ -754,7 +761,6 @@ def evaluate(stepper, data: SequenceData, max_windows: int = 64, rollout_steps: 
         tr = _pm_np(still_truth)
         truth_e = motion_energy(tr)
         truth_curve = [motion_energy(tr[t:t + 2]) for t in range(len(tr) - 1)]
-        truth_src = "rendered at the still viewpoint"
     else:
         diffs = [motion_energy(_pm_np(data.rgba[s:s + L])) for s, _ in data.windows]
         truth_e = float(np.mean(diffs))
@@ -772,6 +778,11 @@ def evaluate(stepper, data: SequenceData, max_windows: int = 64, rollout_steps: 
     figs = {"truth": truth, "methods": methods, "long": long, "pred_curve": pred_e, "truth_curve": truth_curve,
             "truth_energy": truth_e, "still_truth": None if still_truth is None else _pm_np(still_truth)}
     return report, figs
+
+
+def fixed_camera(data: SequenceData) -> bool:
+    """Whether every frame has the same viewpoint (preprocess's fixed-camera mode)."""
+    return bool(np.ptp(data.views[:, :2], 0).max() < 1e-3)
 
 
 def _with_temperature(stepper, temperature: float):

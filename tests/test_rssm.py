@@ -189,3 +189,47 @@ def test_bad_inputs(tmp_path, crops):
         rssm.load_sequences(tmp_path)
     with pytest.raises(DbbError, match="nothing to resume"):
         rssm.train_run(crops.root, tmp_path / "none", SMALL, rssm.TrainConfig(steps=1), resume=True)
+
+
+def test_fixed_camera_footage_is_its_own_still_view_truth(data):
+    fixed = rssm.SequenceData(data.source, data.rgba, np.repeat(data.views[:1], len(data.rgba), 0), data.splits,
+                              data.times, data.windows, data.length)
+    assert rssm.fixed_camera(fixed) and not rssm.fixed_camera(data)
+    rep, _figs = rssm.evaluate(rssm.Stepper(rssm.Rssm(SMALL).eval()), fixed, rollout_steps=8)
+    # No test windows here: the still rollout starts at frame 0 and frames 1-8 are its truth.
+    assert "fixed camera" in rep.motion["truth_source"] and rep.motion["rollouts"] == 1
+    truth = rssm._pm_np(data.rgba[1:9])
+    assert rep.motion["truth_energy"] == pytest.approx(rssm.motion_energy(truth), abs=1e-6)
+
+
+def test_skip_path_decodes_from_the_context_frame_and_old_runs_load():
+    torch.manual_seed(2)
+    m = rssm.Rssm(SMALL).eval()
+    st = rssm.Stepper(m)
+    h, z = torch.randn(1, 16), torch.randn(1, 16)
+    view = torch.tensor([[10.0, 30.0, 0.6]])
+    outs = []
+    for first in (torch.zeros(1, 4, 32, 32), torch.ones(1, 4, 32, 32)):
+        st.start(first, view)
+        torch.manual_seed(4)
+        outs.append(st.step(h, z, view)[2])
+    assert (outs[1] - outs[0]).abs().mean() > 0.1           # the context frame shows through
+    # A run written before the skip path (decoder "convs" Sequential, no "skip" in its config) loads.
+    old_cfg = {k: v for k, v in vars(replace_cfg(SMALL, skip=False)).items() if k != "skip"}
+    old = rssm.Rssm(rssm.RssmConfig.from_json(old_cfg))
+    state = {}
+    for k, v in old.state_dict().items():
+        if k.startswith("decoder.ups."):
+            i, rest = k[len("decoder.ups."):].split(".", 1)
+            k = f"decoder.convs.{2 * int(i)}.{rest}"
+        state[k] = v
+    assert not old.cfg.skip and any(k.startswith("decoder.convs.") for k in state)
+    fresh = rssm.Rssm(rssm.RssmConfig.from_json(old_cfg))
+    fresh.load_state_dict(state)
+    assert torch.equal(fresh.decoder.ups[-1].weight, old.decoder.ups[-1].weight)
+
+
+def replace_cfg(cfg, **kw):
+    from dataclasses import replace
+
+    return replace(cfg, **kw)
