@@ -3,11 +3,12 @@ docs/benchmarks.md, section "PlenOctree (issue 4)". Run under ``flock /tmp/dbb-b
 
     python bench/bench_render.py run RUN [RUN ...]   # trees of dbb-train plenoctree run folders
     python bench/bench_render.py shell               # a synthetic opaque-shell tree (no haze)
+    python bench/bench_render.py rebake RUN OUT      # RUN's checkpoint baked by the current bake
 
 For a run: straight-RGBA frames/s at 256x256 and 800x800 (all cores) from the first held-out
-camera of its dataset (every 8th view), the best CPU seconds per frame on one thread (other
+camera of its dataset, the best CPU seconds per frame on one thread (other
 jobs on a shared machine move it far less than the frame rate; the load average is recorded),
-the tree's size, and with ``--psnr`` the held-out PSNR on white
+the tree's size, and with ``--psnr`` the held-out PSNR on white and black
 (the quality a bake setting costs or buys). ``--torch`` also times the PyTorch path at 256.
 The shell tree is a sphere of opaque leaves at depth 7 (256^3), what a well-converged object
 looks like to the renderer, seen from 2.5 radii (of the tree cube) with a 40 degree field of
@@ -66,10 +67,36 @@ def speeds(r: TreeRenderer, c2w: np.ndarray, base: Intrinsics, repeats: int) -> 
     return out
 
 
+def heldout(run) -> list:
+    """The run dataset's own test views if it marks them (synthetic crops), else every 8th."""
+    ds = load_dataset(Path(run.meta["dataset"]))
+    return ds.split("test") or split_frames(ds, RunConfig(holdout_every=8))[1]
+
+
+def rebake(run_dir: Path, out: Path) -> dict:
+    """Bake ``run_dir``'s checkpoint with the current :func:`bake` into ``out`` (a run folder
+    sharing the checkpoint, so it can be benchmarked like the original)."""
+    import shutil
+
+    import torch
+
+    from dbb_capture.fields import TrainState
+    from dbb_capture.octree import bake
+
+    out.mkdir(parents=True, exist_ok=True)
+    shutil.copy(run_dir / "run.json", out / "run.json")
+    st = TrainState.load(run_dir / "checkpoint.pt", torch.device("cpu"))
+    t = time.perf_counter()
+    tree = bake(st.field)
+    seconds = time.perf_counter() - t
+    size = tree.save(out / "tree.npz")
+    return {"run": str(run_dir), "out": str(out), "bake_s": seconds, "tree_mb": size / 1e6,
+            "leaves_with_data": tree.n_leaves_with_data()}
+
+
 def bench_run(run_dir: Path, repeats: int, with_psnr: bool, with_torch: bool) -> dict:
     run = load_run(run_dir)
-    ds = load_dataset(Path(run.meta["dataset"]))
-    _, test = split_frames(ds, RunConfig(holdout_every=8))
+    test = heldout(run)
     tree = run.tree()
     t = time.perf_counter()
     r = TreeRenderer(tree)
@@ -81,9 +108,9 @@ def bench_run(run_dir: Path, repeats: int, with_psnr: bool, with_torch: bool) ->
         rt = TreeRenderer(tree, backend="torch")
         out["torch_fps_256"] = fps(rt, test[0].c2w, scaled_intrinsics(test[0].intr, test[0].intr.width / 256), 1)
     if with_psnr:
-        rows = evaluate_views(r, test, run.meta["training"]["downscale"])
+        rows = evaluate_views(r, test, run.meta["training"]["downscale"], ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0)))
         out.update(heldout_views=len(test), psnr_white=mean_of(rows, "psnr_white"),
-                   ssim_white=mean_of(rows, "ssim_white"))
+                   ssim_white=mean_of(rows, "ssim_white"), psnr_black=mean_of(rows, "psnr_black"))
     return out
 
 
@@ -116,14 +143,19 @@ def bench_shell(repeats: int) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("part", choices=["run", "shell"])
-    ap.add_argument("runs", type=Path, nargs="*", help="run folders of dbb-train plenoctree")
+    ap.add_argument("part", choices=["run", "shell", "rebake"])
+    ap.add_argument("runs", type=Path, nargs="*",
+                    help="run folders of dbb-train plenoctree (rebake: RUN OUT)")
     ap.add_argument("--repeats", type=int, default=8)
     ap.add_argument("--psnr", action="store_true", help="also held-out PSNR on white")
     ap.add_argument("--torch", action="store_true", help="also time the PyTorch path at 256")
     ap.add_argument("--json", type=Path, default=None, help="also write the figures here")
     a = ap.parse_args(argv)
-    if a.part == "run":
+    if a.part == "rebake":
+        if len(a.runs) != 2:
+            ap.error("rebake takes RUN OUT")
+        res = [rebake(*a.runs)]
+    elif a.part == "run":
         res = [bench_run(p, a.repeats, a.psnr, a.torch) for p in a.runs]
     else:
         res = [bench_shell(a.repeats)]
