@@ -241,6 +241,15 @@ def _pool(threads: int) -> ThreadPoolExecutor:
     return _POOL
 
 
+def _forget_pool() -> None:
+    """A forked child has none of its parent's threads: it must start its own pool."""
+    global _POOL
+    _POOL = None
+
+
+os.register_at_fork(after_in_child=_forget_pool)
+
+
 def leaf_cells(tree: PlenOctree) -> tuple[np.ndarray, np.ndarray]:
     """Cells of the finest lattice (2^(depth_limit+1) per axis) covered by leaves that hold
     density, and the data row (node * 8 + slot) each one reads: (K, 3) int64, (K,) int64.

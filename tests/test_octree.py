@@ -216,3 +216,25 @@ def test_colour_cache_does_not_leak_between_frames(baked):
     again = r.render(frames[6].c2w, frames[6].intr)
     fresh = TreeRenderer(tree).render(frames[6].c2w, frames[6].intr)
     np.testing.assert_array_equal(again, fresh)
+
+
+_FORKED: dict = {}
+
+
+def _render_in_child(c2w, intr):
+    return _FORKED["renderer"].render(c2w, intr)
+
+
+def test_renderer_works_in_a_forked_child_after_the_parent_rendered(baked):
+    """The render threads do not survive fork; a child must not wait on its parent's pool."""
+    import multiprocessing as mp
+
+    from dbb_capture.datasets import scaled_intrinsics
+
+    frames, vol, state, tree, _ = baked
+    intr = scaled_intrinsics(frames[1].intr, 0.25)            # 96x96: more rays than one work item
+    r = _FORKED["renderer"] = TreeRenderer(tree, threads=2)
+    want = r.render(frames[1].c2w, intr)
+    with mp.get_context("fork").Pool(1) as pool:
+        got = pool.apply_async(_render_in_child, (frames[1].c2w, intr)).get(timeout=60)
+    np.testing.assert_array_equal(got, want)
