@@ -372,12 +372,24 @@ def photo_init(fld: LayerField, views: list[PosedView], exclude_radius: float | 
         seen = cnt >= 2
         mean = np.clip(s1 / np.maximum(cnt, 1)[:, None], 0.01, 0.99)
         var = (s2 / np.maximum(cnt, 1)[:, None] - mean ** 2).sum(1).clip(0)
-        alpha = np.clip(np.where(seen, 0.9 * np.exp(-var / sharpness ** 2), 0.02), 0.01, 0.99)
+        # Unseen texels start transparent: where the object stands (no clean plate), nothing is
+        # known, and a grey haze there would tint every ray through the object's disc.
+        alpha = np.clip(np.where(seen, 0.9 * np.exp(-var / sharpness ** 2), 0.001), 0.001, 0.99)
         if abs(hgt) < 1e-9:
             # The board plane: the board is an opaque plane there, and so most likely is what it
             # lies on. Its fine high-contrast texture would fail the agreement test under
-            # sub-pixel pose noise, so it starts opaque wherever seen.
+            # sub-pixel pose noise, so it starts opaque wherever seen, and where the object
+            # hides it from every view the surface around is continued into the gap.
             alpha = np.where(seen, 0.95, alpha)
+            hole = ~seen.reshape(s, s)
+            if hole.any() and seen.any():
+                img = np.round(mean.reshape(s, s, 3) * 255).astype(np.uint8)
+                filled = cv2.inpaint(img, hole.astype(np.uint8), 5, cv2.INPAINT_TELEA).reshape(-1, 3)
+                mean = np.where(seen[:, None], mean, np.clip(filled / 255.0, 0.01, 0.99))
+                near = cv2.dilate(seen.reshape(s, s).astype(np.uint8), np.ones((3, 3), np.uint8),
+                                  iterations=max(1, s // 8)).reshape(-1).astype(bool)
+                alpha = np.where(near, 0.95, alpha)   # only the gap under the object, not the whole square
+                seen = near
         t = layers[li].view(-1, 4)
         t[:, :3] = torch.from_numpy(np.where(seen[:, None], np.log(mean / (1 - mean)), 0.0)).float()
         t[:, 3] = torch.from_numpy(np.log(alpha / (1 - alpha))).float()
