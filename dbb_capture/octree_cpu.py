@@ -231,6 +231,9 @@ def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.n
                                 cache[slot, row, 1] = v1
                                 cache[slot, row, 2] = v2
                                 cache[slot, row, 3] = frame
+                                # Use the stored (float32) colour, as later hits will: a pixel
+                                # must not depend on which thread met the leaf first.
+                                v0, v1, v2 = cache[slot, row, 0], cache[slot, row, 1], cache[slot, row, 2]
                         else:
                             if not basis_ready:
                                 _sh_basis(wx, wy, wz, degree, shb)
