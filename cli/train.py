@@ -105,11 +105,13 @@ def rssm(dataset, out, minutes, steps, size, batch, threads, seed, temperature, 
 @click.argument("run", type=click.Path(path_type=Path))
 @click.option("--dataset", type=click.Path(path_type=Path), default=None,
               help="Evaluate on this crops.json dataset instead of the run's own.")
-def rssm_eval(run, dataset) -> None:
+@click.option("--temperature", type=click.FloatRange(0.0, 10.0), default=None,
+              help="New run-time sampling temperature (also rewrites stepper.ts and run.json's stepper entry).")
+def rssm_eval(run, dataset, temperature) -> None:
     """Re-run the evaluation of an RSSM RUN folder (rewrites RUN/report/ and run.json's eval)."""
     from dbb_capture.rssm import eval_run
 
-    _print_rssm(run, eval_run(run, dataset).to_json(), "re-evaluated")
+    _print_rssm(run, eval_run(run, dataset, temperature).to_json(), "re-evaluated")
 
 
 def _print_rssm(out: Path, ev: dict, what: str) -> None:

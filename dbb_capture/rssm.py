@@ -68,8 +68,8 @@ class RssmConfig:
     stoch: int = 64                # Gaussian stochastic state
     hidden: int = 256              # MLP width
     embed: int = 256               # encoder output
-    enc_depth: int = 16            # channels of the first encoder conv (doubling, capped at 256)
-    dec_depth: int = 16            # decoder channels at 32 px (halving per doubling, >= 8)
+    enc_depth: int = 8             # channels of the first encoder conv (doubling, capped at 256)
+    dec_depth: int = 8             # decoder channels at 32 px (halving per doubling, >= 8)
     view_freqs: int = 4            # positional-encoding octaves of azimuth and elevation
     min_std: float = 0.1           # std = softplus(x) + min_std (PlaNet)
     free_nats: float = 1.0
@@ -190,6 +190,10 @@ class Decoder(nn.Module):
         n_out = 7 if self.skip else 4                                     # RGBA (+ mask, flow x, flow y)
         self.ups = nn.ModuleList([nn.ConvTranspose2d(c_in + c_skip, c_out, 4, 2, 1)
                                   for c_in, c_skip, c_out in zip(ch, enc, ch[1:] + [n_out])])
+        # Pixel-centre sampling grid of grid_sample (align_corners=False), (1, S, S, 2) as (x, y).
+        lin = (torch.arange(cfg.size, dtype=torch.float32) * 2.0 + 1.0) / cfg.size - 1.0
+        gy, gx = torch.meshgrid(lin, lin, indexing="ij")
+        self.register_buffer("grid", torch.stack([gx, gy], -1)[None], persistent=False)
         if self.skip:                     # start close to copying the context frame, unwarped
             with torch.no_grad():
                 last = self.ups[-1]
@@ -224,18 +228,15 @@ class Decoder(nn.Module):
         gen = torch.cat([gen[:, :3] * gen[:, 3:4], gen[:, 3:4]], 1)
         mask = torch.sigmoid(x[:, 4:5])
         flow = torch.tanh(x[:, 5:7]) * self.max_flow
-        S = x.shape[-1]
-        lin = (torch.arange(S, dtype=x.dtype, device=x.device) * 2.0 + 1.0) / S - 1.0
-        gy, gx = torch.meshgrid(lin, lin, indexing="ij")
-        grid = torch.stack([gx, gy], -1)[None] + flow.permute(0, 2, 3, 1)
+        grid = self.grid.to(x.dtype) + flow.permute(0, 2, 3, 1)
         warped = F.grid_sample(ctx_pm, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
         return mask * warped + (1.0 - mask) * gen
 
 
 def straight(pm: torch.Tensor) -> torch.Tensor:
-    """Premultiplied RGBA (B, 4, S, S) -> straight RGBA (colour 0 where alpha is ~0)."""
+    """Premultiplied RGBA (B, 4, S, S) -> straight RGBA (colour undefined where alpha is ~0)."""
     a = pm[:, 3:4]
-    return torch.cat([(pm[:, :3] / a.clamp(min=1e-4)).clamp(0.0, 1.0) * (a > 1e-4).to(pm.dtype), a], 1)
+    return torch.cat([(pm[:, :3] / a.clamp(min=1e-4)).clamp(0.0, 1.0), a], 1)
 
 
 def _gauss(stats: torch.Tensor, min_std: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -379,11 +380,12 @@ class Stepper(nn.Module):
         self.ctx = []                  # the context frame's encoder maps (skip path), set by start()
         self.ctx_pm = torch.zeros(0)
         self.ctx_pe = torch.zeros(0)
+        # Radians per degree at octaves 1, 2, 4, ... (view_encoding's frequencies).
+        self.register_buffer("octaves", (math.pi / 180.0) * 2.0 ** torch.arange(self.freqs, dtype=torch.float32),
+                             persistent=False)
 
     def _pe(self, view: torch.Tensor) -> torch.Tensor:
-        ang = view[:, :2] * (math.pi / 180.0)
-        k = torch.pow(2.0, torch.arange(self.freqs, dtype=view.dtype, device=view.device))
-        a = ang[:, :, None] * k
+        a = view[:, :2, None] * self.octaves.to(view.dtype)
         return torch.cat([torch.sin(a), torch.cos(a)], -1).flatten(1)
 
     @torch.jit.export
@@ -963,10 +965,11 @@ def load_model(run: Path) -> Rssm:
     return model.eval()
 
 
-def eval_run(run: Path, dataset: Path | None = None) -> EvalReport:
+def eval_run(run: Path, dataset: Path | None = None, temperature: float | None = None) -> EvalReport:
     """Re-run the evaluation of a run folder (on its own dataset unless ``dataset`` is given).
 
-    Rewrites ``report/`` and the ``eval`` entry of ``run.json`` in place.
+    Rewrites ``report/`` and the ``eval`` entry of ``run.json`` in place; a new ``temperature``
+    also rewrites ``stepper.ts`` and the stepper's temperature in ``run.json``.
     """
     run = Path(run)
     model = load_model(run)
@@ -977,7 +980,14 @@ def eval_run(run: Path, dataset: Path | None = None) -> EvalReport:
     history = torch.load(ck, map_location="cpu", weights_only=False)["history"] if ck.is_file() else []
     tmp = run / ".report.partial"
     shutil.rmtree(tmp, ignore_errors=True)
-    report = run_eval(model, data, tmp, history, temperature=float(meta["stepper"].get("temperature", 1.0)))
+    if temperature is None:
+        temperature = float(meta["stepper"].get("temperature", 1.0))
+    report = run_eval(model, data, tmp, history, temperature=temperature)
+    if temperature != meta["stepper"].get("temperature", 1.0):
+        ts = run / ".stepper.ts.partial"
+        script_stepper(model, temperature).save(str(ts))
+        ts.replace(run / meta["stepper"]["file"])
+        meta["stepper"]["temperature"] = temperature
     shutil.rmtree(run / "report", ignore_errors=True)
     tmp.replace(run / "report")
     meta["eval"] = report.to_json()

@@ -149,8 +149,10 @@ def test_run_folder_cli_resume_and_eval(crops, tmp_path):
     ts = torch.jit.load(str(out / "stepper.ts"))
     h, z = ts.start(torch.rand(1, 4, 32, 32), torch.zeros(1, 3))
     assert ts.step(h, z, torch.zeros(1, 3))[2].shape == (1, 4, 32, 32)
-    r = CliRunner().invoke(cli.main, ["rssm-eval", str(out)])
+    r = CliRunner().invoke(cli.main, ["rssm-eval", str(out), "--temperature", "0.5"])
     assert r.exit_code == 0, r.output
+    assert json.loads((out / "run.json").read_text())["stepper"]["temperature"] == 0.5
+    assert torch.jit.load(str(out / "stepper.ts")).temperature == 0.5
     assert not (out / ".report.partial").exists() and (out / "report" / "eval.json").is_file()
     r = CliRunner().invoke(cli.main, ["rssm", str(tmp_path / "missing"), "-o", str(tmp_path / "x")])
     lines = [ln for ln in r.output.splitlines() if ln.strip()]
