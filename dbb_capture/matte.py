@@ -6,9 +6,11 @@ looks like behind the object in a crop camera; the matte is where the observatio
     d      = robust colour distance(observed, predicted)  (min over 1-px shifts of the prediction,
              so a slightly blurred or misaligned prediction does not light up edges)
     alpha  = soft threshold of d (thresholds from the noise level measured outside the object)
-             restricted to the projected bounding sphere,
-    then     morphology (drop specks, fill holes), an edge-aware (guided) filter, and colour
-             decontamination so edge pixels carry the object's colour, not the room's.
+             restricted to the projected bounding sphere, raised by its edge-aware (guided,
+             the observed crop as guide) smoothing where d shows any difference,
+    then     morphology (drop specks, fill holes), fractional alpha at the edges from the
+             compositing equation, and colour decontamination so edge pixels carry the
+             object's colour, not the room's.
 """
 
 from __future__ import annotations
@@ -23,13 +25,15 @@ import numpy as np
 class MatteConfig:
     """Thresholds in units of the measured noise level; areas as fractions of the disc."""
 
-    low_sigmas: float = 4.0        # below: background
-    high_sigmas: float = 9.0       # above: object
+    low_sigmas: float = 3.0        # below: background
+    high_sigmas: float = 6.0       # above: object
     min_threshold: float = 0.035   # colour distance floor (0..1 RGB scale)
     shift_px: int = 1              # robustness to misregistration of the prediction
     disc_margin: float = 1.04      # the sphere's disc, slightly enlarged
     min_blob: float = 0.01         # components smaller than this fraction of the largest are dropped
     edge_px: int = 1               # width of the band where alpha is fractional
+    guided_px: int = 3             # edge-aware smoothing of the soft alpha before the decision (0: off)
+    guided_eps: float = 1e-3
 
 
 def sphere_disc(size: int, fill: float, margin: float = 1.0) -> np.ndarray:
@@ -121,6 +125,14 @@ def matte(observed: np.ndarray, predicted: np.ndarray, disc: np.ndarray,
     t0 = max(cfg.min_threshold, cfg.low_sigmas * noise)
     t1 = max(t0 * 1.5, cfg.high_sigmas * noise)
     alpha = np.clip((d - t0) / (t1 - t0), 0, 1) * disc
+    if cfg.guided_px > 0:
+        # Edge-aware: alpha spreads within regions the image shows as one surface and stops at
+        # its edges, so object areas coloured like the room take the decision of their surroundings.
+        guide = observed.astype(np.float32) / 255.0
+        # Only raised, and only where the colour differs at all: boundaries stay where the
+        # evidence puts them; weak parts inside the object (a dark limb on a dark table) fill in.
+        g = cv2.ximgproc.guidedFilter(guide, alpha.astype(np.float32), cfg.guided_px, cfg.guided_eps) * disc
+        alpha = np.where(d > t0, np.maximum(alpha, g), alpha)
     core = alpha > 0.5
     core = cv2.morphologyEx(core.astype(np.uint8), cv2.MORPH_OPEN, np.ones((2, 2), np.uint8)).astype(bool)
     if core.any():
