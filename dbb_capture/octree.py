@@ -241,6 +241,11 @@ def _pool(threads: int) -> ThreadPoolExecutor:
     return _POOL
 
 
+def _cores() -> int:
+    """CPU cores this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
 def _forget_pool() -> None:
     """A forked child has none of its parent's threads: it must start its own pool."""
     global _POOL
@@ -296,7 +301,9 @@ class TreeRenderer:
 
     ``backend="numba"`` (the default on the CPU, :mod:`.octree_cpu`) walks every ray exactly
     cell by cell, integrates each leaf over the length the ray spends in it, skips empty
-    8^3-leaf bricks (whole empty cubes of them at once), and stops a ray once its transmittance is under ``t_min``.
+    8^3-leaf bricks (whole empty cubes of them at once) and stops a ray once its
+    transmittance is under ``t_min``; ``threads`` threads (default: the usable cores) share
+    the rays.
     ``backend="torch"`` (the default on CUDA) is vectorized PyTorch: a coarse pass finds, per
     ray, the stretch that crosses occupied bricks; the fine pass samples it every ``step``
     leaves in chunks of ``chunk_samples``, composites front to back
@@ -305,6 +312,7 @@ class TreeRenderer:
     The numba walk evaluates SH colour only for leaves whose weight (transmittance times
     alpha) reaches ``w_min``; the skipped weight is shared out over the evaluated colours,
     so alpha stays exact (1e-3 measured 58.8 dB against evaluating every leaf on lego).
+    For a camera, each leaf is coloured once per frame (see :meth:`_trace_np`).
     """
 
     def __init__(self, tree: PlenOctree, device: torch.device | str = "cpu", t_min: float = 1e-3,
@@ -321,7 +329,7 @@ class TreeRenderer:
         self.backend = backend
         self.t_min = t_min
         self._w_eps = w_min
-        self.threads = int(threads) if threads else len(os.sched_getaffinity(0))
+        self.threads = int(threads) if threads else _cores()
         self._lock = threading.Lock()
         self.K = chunk_samples
         self.step = float(step)

@@ -128,11 +128,11 @@ def _box_exit(cx: int, cy: int, cz: int, size: float, px: float, py: float, pz: 
 
 @numba.njit(cache=True, fastmath=_FM, nogil=True)
 def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.ndarray, offset: np.ndarray,
-               L: int, lo: np.ndarray, hi: np.ndarray, skip: np.ndarray, bricks: np.ndarray,
-               nbrk: int, leaf_row: np.ndarray, leaf_sigma: np.ndarray, coef: np.ndarray, p2: np.ndarray, degree: int,
-               sigmoid: bool,
-               t_min: float, w_eps: float, start: int, end: int, slot: int, frame: int, cache: np.ndarray,
-               pixel: np.ndarray, mode: int, bg: np.ndarray, out: np.ndarray) -> None:
+               L: int, lo: np.ndarray, hi: np.ndarray, skip: np.ndarray, bricks: np.ndarray, nbrk: int,
+               leaf_row: np.ndarray, leaf_sigma: np.ndarray, coef: np.ndarray, p2: np.ndarray,
+               degree: int, sigmoid: bool, t_min: float, w_eps: float, start: int, end: int, slot: int,
+               frame: int, cache: np.ndarray, pixel: np.ndarray, mode: int, bg: np.ndarray,
+               out: np.ndarray) -> None:
     """Colour of rays ``start`` to ``end`` into row ``pixel[r]`` of ``out`` (see :func:`_write`
     for ``mode`` and ``bg``). Releases the GIL: Python threads run disjoint ranges side by side.
 
@@ -145,8 +145,9 @@ def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.n
     through the float32 view ``leaf_sigma`` of the same memory; 0 = empty) and its data row,
     so one cache line serves both.
     ``coef`` (K, >= 3 * B) uint16 the float16 bits of each row's SH coefficients (rows
-    padded to whole cache lines: one miss fetches a leaf's colour), ``p2`` :data:`HALF_SCALE`. Rays stop once transmittance < ``t_min``;
-    colour is evaluated only where the sample weight exceeds ``w_eps``.
+    padded to whole cache lines: one miss fetches a leaf's colour), ``p2`` :data:`HALF_SCALE`.
+    Rays stop once transmittance < ``t_min``; colour is evaluated only where the sample
+    weight exceeds ``w_eps``.
     ``frame`` > 0 (only with one origin, below 2^24) turns on the leaf colour cache
     ``cache[slot]`` (K, 4) float32: RGB, valid where the 4th value equals ``frame``; each
     thread owns a slot.
