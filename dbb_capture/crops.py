@@ -105,24 +105,44 @@ def crop_camera(c2w: np.ndarray, src: Intrinsics, center: np.ndarray, radius: fl
     return CropCamera(intr, crop_c2w, viewpoint(eye, center, up), window_px=size * f_src / f)
 
 
-def crop_maps(cam: CropCamera, src: Intrinsics, src_c2w: np.ndarray, supersample: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """Source-pixel coordinates (map_x, map_y), each (size*s, size*s) float32, for ``cv2.remap``.
-
-    Each crop (sub)pixel's ray is turned into the source camera and projected through its lens
-    model (distortion included).
-    """
-    n = cam.intr.width * supersample
-    grid = pixel_grid(cam.intr.width, cam.intr.height, supersample).reshape(-1, 2)
-    rays = np.stack([(grid[:, 0] - cam.intr.cx) / cam.intr.fx, (grid[:, 1] - cam.intr.cy) / cam.intr.fy,
-                     np.ones(len(grid))], 1)
-    R = invert_rigid(src_c2w)[:3, :3] @ cam.c2w[:3, :3]     # crop camera -> source camera rotation
-    d = rays @ R.T
+def _project_crop_points(cam: CropCamera, src: Intrinsics, R: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Source pixels (len(v), len(u), 2) of crop pixel positions on the grid ``u`` x ``v``."""
+    uu, vv = np.meshgrid(u, v)
+    rays = np.stack([(uu - cam.intr.cx) / cam.intr.fx, (vv - cam.intr.cy) / cam.intr.fy, np.ones(uu.shape)], -1)
+    d = rays.reshape(-1, 3) @ R.T
     behind = d[:, 2] <= 1e-9
     d[behind, 2] = 1e-9
     uv, _ = cv2.projectPoints(d.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), src.K, src.dist_array)
     uv = uv.reshape(-1, 2)
     uv[behind] = -1e6
-    return uv[:, 0].reshape(n, n).astype(np.float32), uv[:, 1].reshape(n, n).astype(np.float32)
+    return uv.reshape(len(v), len(u), 2)
+
+
+def crop_maps(cam: CropCamera, src: Intrinsics, src_c2w: np.ndarray, supersample: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Source-pixel coordinates (map_x, map_y), each (size*s, size*s) float32, for ``cv2.remap``.
+
+    Each crop (sub)pixel's ray is turned into the source camera and projected through its lens
+    model (distortion included). With supersampling, rays are projected once per crop pixel
+    corner and the map is interpolated between them: the map is smooth (a rotation and the
+    lens), and projecting every subsample of a large window costs most of a frame's time.
+    """
+    R = invert_rigid(src_c2w)[:3, :3] @ cam.c2w[:3, :3]     # crop camera -> source camera rotation
+    s = supersample
+    off = (np.arange(s) + 0.5) / s - 0.5
+    fu = (np.arange(cam.intr.width)[:, None] + off[None, :]).reshape(-1)
+    fv = (np.arange(cam.intr.height)[:, None] + off[None, :]).reshape(-1)
+    if s <= 2:
+        uv = _project_crop_points(cam, src, R, fu, fv)
+    else:
+        nu = np.arange(-0.5, cam.intr.width, 1.0)
+        nv = np.arange(-0.5, cam.intr.height, 1.0)
+        coarse = _project_crop_points(cam, src, R, nu, nv).astype(np.float32)
+        # Node k sits at crop coordinate k - 0.5: a fine sample at x is at node coordinate x + 0.5.
+        gx, gy = np.meshgrid((fu + 0.5).astype(np.float32), (fv + 0.5).astype(np.float32))
+        uv = cv2.remap(coarse, gx, gy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        behind = cv2.remap((coarse[..., 0] < -1e5).astype(np.float32), gx, gy, cv2.INTER_LINEAR) > 0
+        uv[behind] = -1e6                          # behind the camera stays off the image
+    return uv[..., 0].astype(np.float32), uv[..., 1].astype(np.float32)
 
 
 def cut_crop(image: np.ndarray, cam: CropCamera, src: Intrinsics, src_c2w: np.ndarray) -> tuple[np.ndarray, bool]:
