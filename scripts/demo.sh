@@ -3,7 +3,9 @@
 # preprocess (poses, background field, mattes, crops) -> train (short budgets) -> bundle
 # (manifest, model, proxy mesh, previews) -> render and verify, for the static and the dynamic sample.
 # Usage: ./scripts/demo.sh [OUTPUT_DIR]   (default: out/demo)
-# Budgets (minutes) can be changed: DBB_BG_MINUTES, DBB_TRAIN_MINUTES.
+# Budgets (minutes) can be changed: DBB_BG_MINUTES, DBB_TRAIN_MINUTES. The defaults keep the whole
+# demo, install included, within 15 minutes on 2 CPU cores: enough to see every stage work, not
+# for quality (train for 10-15 minutes and at --res-max 256+ for that; see docs/benchmarks.md).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ./scripts/setup.sh
@@ -25,7 +27,7 @@ dbb-capture preprocess sample_data/dynamic -o "$OUT/dynamic_dataset" --backgroun
 made+=("$OUT/dynamic_dataset       dataset: crops.json with sequences, contact_sheet.png, dataset.json")
 
 step "3. train the static object: radiance field baked into a PlenOctree ($TRAIN min)"
-dbb-train plenoctree "$OUT/static_dataset" -o "$OUT/static_run" --minutes "$TRAIN" --res-max 128 --overwrite
+dbb-train plenoctree "$OUT/static_dataset" -o "$OUT/static_run" --minutes "$TRAIN" --res-max 64 --sh-degree 1 --overwrite
 made+=("$OUT/static_run            PlenOctree run: tree.npz, report/ (held-out renders and PSNR)")
 
 step "4. train the dynamic object: viewpoint-conditioned RSSM ($TRAIN min)"
