@@ -30,6 +30,7 @@ from dbb_capture.cameras import opengl_from_opencv
 from dbb_capture.errors import DbbError
 from dbb_capture.fields import psnr
 from dbb_capture.proxy import read_glb, transform_points
+from common import emit  # bench/ is the script folder: on sys.path
 
 
 def true_occupancy(model, t: float, points: np.ndarray) -> np.ndarray:
@@ -209,11 +210,7 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     res = (bench_static(a.run, a.out, a.capture, a.seed or 0, a.res) if a.part == "static"
            else bench_dynamic(a.run, a.out, a.seed, a.res))
-    text = json.dumps(res, indent=2)
-    print(text)
-    if a.json:
-        a.json.write_text(text + "\n")
-    return 0
+    return emit(res, a.json)
 
 
 if __name__ == "__main__":

@@ -13,7 +13,6 @@ Each part evaluates a run folder written by ``dbb-train plenoctree`` (train it f
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import time
@@ -27,6 +26,7 @@ from dbb_capture.datasets import Frame, ObjectVolume, load_dataset, scaled_intri
 from dbb_capture.fields import TrainState, frame_tensors, psnr, render_image
 from dbb_capture.octree import TreeRenderer
 from dbb_capture.plenoctree import RunConfig, evaluate_views, load_run, mean_of, split_frames, train_run
+from common import emit  # bench/ is the script folder: on sys.path
 
 FOX_HELDOUT = ("0005", "0016", "0017", "0024", "0032", "0051", "0068", "0071", "0075", "0083", "0087",
                "0088", "0093", "0099", "0104", "0106", "0113")
@@ -153,11 +153,7 @@ def main(argv: list[str] | None = None) -> int:
         res = bench_fox(a.path)
     else:
         res = bench_synth(a.path, a.minutes)
-    text = json.dumps(res, indent=2)
-    print(text)
-    if a.json:
-        a.json.write_text(text + "\n")
-    return 0
+    return emit(res, a.json)
 
 
 if __name__ == "__main__":

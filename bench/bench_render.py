@@ -18,7 +18,6 @@ view, so that it covers about as much of the frame as lego does.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import sys
@@ -31,6 +30,7 @@ from dbb_capture.cameras import Intrinsics, look_at
 from dbb_capture.datasets import load_dataset, scaled_intrinsics
 from dbb_capture.octree import PlenOctree, TreeRenderer, build_tree
 from dbb_capture.plenoctree import RunConfig, evaluate_views, load_run, mean_of, split_frames
+from common import emit  # bench/ is the script folder: on sys.path
 
 
 def fps(renderer: TreeRenderer, c2w: np.ndarray, intr: Intrinsics, repeats: int) -> float:
@@ -159,11 +159,7 @@ def main(argv: list[str] | None = None) -> int:
         res = [bench_run(p, a.repeats, a.psnr, a.torch) for p in a.runs]
     else:
         res = [bench_shell(a.repeats)]
-    text = json.dumps(res, indent=2)
-    print(text)
-    if a.json:
-        a.json.write_text(text + "\n")
-    return 0
+    return emit(res, a.json)
 
 
 if __name__ == "__main__":

@@ -289,9 +289,11 @@ def view_rays(view: PosedView, center: np.ndarray, radius: float, up: np.ndarray
     passes within ``drop_sphere * radius`` of the centre (the object is in this frame).
     """
     cam = crop_camera(view.c2w, view.intr, center, radius, up, size, fill)
-    rgb, _ = cut_crop(view.image, cam, view.intr, view.c2w)
-    mask, _ = cut_crop(np.full(view.image.shape[:2], 255, np.uint8), cam, view.intr, view.c2w)
-    keep = mask.reshape(-1) == 255
+    rgb, touched = cut_crop(view.image, cam, view.intr, view.c2w)
+    keep = np.ones(rgb.shape[0] * rgb.shape[1], bool)
+    if touched:  # only then can pixels lie outside the frame
+        mask, _ = cut_crop(np.full(view.image.shape[:2], 255, np.uint8), cam, view.intr, view.c2w)
+        keep = mask.reshape(-1) == 255
     o, d = pinhole_rays(cam.intr, cam.c2w)
     if drop_sphere is not None:
         oc = center - o
