@@ -15,7 +15,8 @@ deadlock under ``fork``).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from functools import lru_cache
 from typing import Callable, Sequence
 
 import cv2
@@ -57,6 +58,10 @@ class DetectorConfig:
     win_max: int = 6
     px_per_bit: float = 3.5   # reduce no further than this many px per marker bit (25th pct. marker)
     one_threshold: bool = True  # once marker size is known, one adaptive-threshold window, not 3
+    saddle: bool = True       # final corners: saddle points of the image (:func:`refine_saddles`)
+    saddle_frac: float = 0.8  # saddle-fit half-window, as a fraction of the square's white margin
+    saddle_max: int = 8
+    saddle_blur: float = 1.0  # Gaussian sigma (px) applied to the fitted patch
 
 
 _SCALES = (1.0, 2.0 / 3.0, 0.5, 1.0 / 3.0, 0.25)  # cheap resize factors
@@ -147,6 +152,10 @@ class BoardDetector:
         if self.cfg.refine and used_scale < 1.0:
             # detectBoard refined them in the reduced image; sharpen them at full resolution.
             corners = self._refine(gray, corners, mcs, used_scale)
+        if self.cfg.saddle and len(ids) >= 4:
+            half = np.clip(np.floor(self.cfg.saddle_frac * corner_margins_px(self.board, ids, corners)),
+                           2, self.cfg.saddle_max).astype(np.int64)
+            corners, _ = refine_saddles(gray, corners, half, self.cfg.saddle_blur)
         self._last_n = len(ids)
         # Next frame: the smallest scale that keeps ``px_per_bit`` on all but the smallest
         # quarter of the markers, and a threshold window of ~0.4 marker side at that scale.
@@ -179,6 +188,79 @@ class BoardDetector:
         moved = np.linalg.norm(refined - corners, axis=1)
         max_move = max(1.5, 1.0 / scale)
         return np.where((moved < max_move)[:, None], refined.astype(np.float64), corners)
+
+
+def corner_margins_px(board: BoardSpec, ids: np.ndarray, corners: np.ndarray) -> np.ndarray:
+    """Per corner (N,): the imaged width (px) of the white margin between a ChArUco corner and
+    the nearest marker edge, along the board's more foreshortened axis (board-to-image
+    homography through ``corners`` (N, 2) px of ChArUco ``ids`` (N,), N >= 4)."""
+    obj = board.chessboard_corners()[ids][:, :2]
+    H, _ = cv2.findHomography(obj, corners)
+    if H is None:
+        return np.zeros(len(ids))
+    X = np.hstack([obj, np.ones((len(obj), 1))]) @ H.T
+    w = X[:, 2:3]
+    # d(image)/d(board x), d(image)/d(board y) at each corner, px per metre.
+    jx = (H[None, :2, 0] * w - X[:, :2] * H[2, 0]) / w ** 2
+    jy = (H[None, :2, 1] * w - X[:, :2] * H[2, 1]) / w ** 2
+    px_per_m = np.minimum(np.linalg.norm(jx, axis=1), np.linalg.norm(jy, axis=1))
+    return px_per_m * (board.square_length - board.marker_length) / 2
+
+
+@lru_cache(maxsize=64)
+def _saddle_operator(half: int, blur: float) -> np.ndarray:
+    """(6, M*M), M = 2*(half + r) + 1: takes a patch centred on the current estimate, blurs it
+    (Gaussian ``blur`` px, radius r = ceil(2 blur), 'valid' part) and returns the coefficients of
+    a x^2 + b xy + c y^2 + d x + e y + f fitted by Gaussian-weighted least squares."""
+    yy, xx = np.mgrid[-half:half + 1, -half:half + 1].astype(np.float64)
+    x, y = xx.ravel(), yy.ravel()
+    A = np.stack([x * x, x * y, y * y, x, y, np.ones_like(x)], 1)
+    w = np.exp(-(x * x + y * y) / (2 * (0.6 * half + 0.5) ** 2))
+    fit = np.linalg.pinv(A * w[:, None]) * w[None, :]           # (6, S*S)
+    r = int(math.ceil(2 * blur)) if blur > 0 else 0
+    S = 2 * half + 1
+    k = np.exp(-0.5 * (np.arange(-r, r + 1) / max(blur, 1e-6)) ** 2)
+    K1 = np.zeros((S, S + 2 * r))
+    for i in range(S):
+        K1[i, i:i + 2 * r + 1] = k / k.sum()
+    return fit @ np.kron(K1, K1)
+
+
+def refine_saddles(gray: np.ndarray, corners: np.ndarray, half: np.ndarray, blur: float = 1.0,
+                   iters: int = 5) -> tuple[np.ndarray, np.ndarray]:
+    """Chessboard corners as saddle points of the image: a quadratic surface is fitted to the
+    (Gaussian-blurred) grey levels around each corner and the estimate moved to its saddle,
+    repeated until it stops moving. An X-junction is point-symmetric about its centre, so on a
+    window centred there the fit's linear terms vanish: no bias from blur, perspective or the
+    window size, unlike ``cornerSubPix`` on low-resolution corners.
+
+    ``gray`` (H, W) uint8, ``corners`` (N, 2) px, ``half`` (N,) int window half-sizes (keep the
+    window inside the white margin around the corner, see :func:`corner_margins_px`).
+    Returns (corners (N, 2), refined (N,) bool); a corner whose fit is not a saddle or which
+    would move more than half its window keeps its input position.
+    """
+    corners = np.asarray(corners, np.float64).reshape(-1, 2)
+    half = np.broadcast_to(np.asarray(half, np.int64), (len(corners),))
+    out, ok = corners.copy(), np.zeros(len(corners), bool)
+    for i, ((x0, y0), h) in enumerate(zip(corners.tolist(), half.tolist())):
+        P = _saddle_operator(h, float(blur))
+        M = math.isqrt(P.shape[1])
+        x, y, fitted = x0, y0, True
+        for _ in range(iters):
+            # getRectSubPix interpolates with float weights (remap rounds to 1/32 px).
+            patch = cv2.getRectSubPix(gray, (M, M), (x, y), patchType=cv2.CV_32F)
+            a, b, c, d, e, _ = (P @ patch.ravel()).tolist()
+            det = 4 * a * c - b * b
+            dx, dy = ((b * e - 2 * c * d) / det, (b * d - 2 * a * e) / det) if det < 0 else (h, h)
+            if max(abs(dx), abs(dy)) >= h:   # not a saddle, or one outside the window
+                fitted = False
+                break
+            x, y = x + dx, y + dy
+            if max(abs(dx), abs(dy)) < 0.003:
+                break
+        if fitted and math.hypot(x - x0, y - y0) <= 0.5 * h:
+            out[i], ok[i] = (x, y), True
+    return out, ok
 
 
 def detect_frames(frames, board: BoardSpec, cfg: DetectorConfig = DetectorConfig(),
@@ -265,15 +347,20 @@ def diagnose_no_board(frames: Sequence[np.ndarray], board: BoardSpec) -> str:
 # --------------------------------------------------------------------------- calibration
 @dataclass(frozen=True)
 class Calibration:
-    """Intrinsics from board views: RMS reprojection error (px), views used and rejected (names)."""
+    """Intrinsics from board views: RMS reprojection error (px), views used and rejected (names),
+    and the standard deviation (px) of fx and fy that the fit itself estimates (few or similar
+    views leave the focal length loosely determined)."""
 
     intrinsics: Intrinsics
     rms: float
     used: tuple[str, ...]
     rejected: tuple[str, ...]
+    fx_std: float = float("nan")
+    fy_std: float = float("nan")
 
     def to_json(self) -> dict:
         return {**self.intrinsics.to_json(), "rms": round(self.rms, 4),
+                "fx_std": round(self.fx_std, 3), "fy_std": round(self.fy_std, 3),
                 "views_used": len(self.used), "views_rejected": list(self.rejected)}
 
 
@@ -324,7 +411,7 @@ def calibrate(dets: Sequence[Detection], board: BoardSpec, width: int, height: i
     for _ in range(3):
         objs = [obj_all[d.ids] for d in views]
         imgs = [d.corners.astype(np.float32) for d in views]
-        rms, K, dist, _, _, _, _, per_view = cv2.calibrateCameraExtended(
+        rms, K, dist, _, _, std, _, per_view = cv2.calibrateCameraExtended(
             objs, imgs, (width, height), None, None, flags=flags)
         per_view = per_view.ravel()
         bad = per_view > max(3 * np.median(per_view), 1.0)
@@ -335,7 +422,9 @@ def calibrate(dets: Sequence[Detection], board: BoardSpec, width: int, height: i
     dist = np.ravel(dist)
     intr = Intrinsics(width, height, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]),
                       tuple(float(v) for v in dist[:5]))
-    return Calibration(intr, float(rms), tuple(d.name for d in views), tuple(rejected))
+    std = np.ravel(std)
+    return Calibration(intr, float(rms), tuple(d.name for d in views), tuple(rejected),
+                       float(std[0]), float(std[1]))
 
 
 # --------------------------------------------------------------------------- poses
@@ -350,6 +439,9 @@ class PoseConfig:
     outlier_window: int = 3
     outlier_deg: float = 3.0
     outlier_rel: float = 0.05     # position jump, as a fraction of the camera-board distance
+    corner_k: float = 3.5         # a corner is dropped beyond k x the frame's typical residual ...
+    corner_floor_px: float = 0.25  # ... and beyond this many px
+    corner_drop: float = 0.3      # at most this fraction of a frame's corners is dropped
 
 
 @dataclass(frozen=True)
@@ -370,6 +462,7 @@ class FramePose:
     reproj_px: float = float("nan")
     ambiguity: float = float("nan")
     alt_c2w: np.ndarray | None = field(default=None, repr=False)  # the other planar solution
+    inliers: np.ndarray | None = field(default=None, repr=False)  # (n_corners,) bool; None: all
 
     @property
     def posed(self) -> bool:
@@ -406,6 +499,23 @@ def solve_pose(obj: np.ndarray, img: np.ndarray, intr: Intrinsics) -> tuple[np.n
     return _c2w(best[1], best[2]), best[0], float(ratio), _c2w(other[1], other[2])
 
 
+def _corner_inliers(obj: np.ndarray, img: np.ndarray, c2w: np.ndarray, intr: Intrinsics,
+                    cfg: PoseConfig) -> np.ndarray | None:
+    """Corners (N,) bool that fit pose ``c2w``, or None when all do (or too few would remain).
+
+    A corner partly hidden (by the object, a finger, the frame edge) or caught on clutter sits
+    pixels off while the rest agree to a few hundredths: one such corner tilts the whole pose.
+    """
+    w2c = invert_rigid(c2w)
+    proj, _ = cv2.projectPoints(obj, cv2.Rodrigues(w2c[:3, :3])[0], w2c[:3, 3], intr.K, intr.dist_array)
+    res = np.linalg.norm(proj.reshape(-1, 2) - img, axis=1)
+    sigma = float(np.median(res)) / 1.1774  # median of a 2D Gaussian's radius is 1.1774 sigma
+    keep = res <= max(cfg.corner_k * sigma, cfg.corner_floor_px)
+    if keep.all() or keep.sum() < max(cfg.min_corners, 4, math.ceil((1 - cfg.corner_drop) * len(res))):
+        return None
+    return keep
+
+
 def pose_frames(dets: Sequence[Detection], board: BoardSpec, intr: Intrinsics,
                 cfg: PoseConfig = PoseConfig()) -> list[FramePose]:
     """Pose every detection (independently; see :func:`reject_outliers` for the video pass)."""
@@ -421,10 +531,14 @@ def pose_frames(dets: Sequence[Detection], board: BoardSpec, intr: Intrinsics,
         elif cv_board.checkCharucoCornersCollinear(d.ids):
             out.append(FramePose(status="collinear corners", **base))
         else:
-            c2w, err, ratio, alt = solve_pose(obj_all[d.ids], d.corners, intr)
+            obj, keep = obj_all[d.ids], None
+            c2w, err, ratio, alt = solve_pose(obj, d.corners, intr)
+            keep = _corner_inliers(obj, d.corners, c2w, intr, cfg)
+            if keep is not None:
+                c2w, err, ratio, alt = solve_pose(obj[keep], d.corners[keep], intr)
             status = "posed" if err <= cfg.max_reproj_px else "reprojection"
             out.append(FramePose(status=status, c2w=c2w, reproj_px=err, ambiguity=ratio,
-                                 alt_c2w=alt, **base))
+                                 alt_c2w=alt, inliers=keep, **base))
     return out
 
 
@@ -481,11 +595,9 @@ def reject_outliers(poses: Sequence[FramePose], cfg: PoseConfig = PoseConfig()) 
         i = active[j]
         p = out[i]
         if p.ambiguity > cfg.ambiguity and p.alt_c2w is not None and excess(i, p.alt_c2w, j, C, T) <= 1.0:
-            out[i] = FramePose(p.index, p.time, p.name, p.status, p.alt_c2w, p.n_corners,
-                               p.reproj_px, p.ambiguity, p.c2w)
+            out[i] = replace(p, c2w=p.alt_c2w, alt_c2w=p.c2w)
         else:
-            out[i] = FramePose(p.index, p.time, p.name, "outlier", p.c2w, p.n_corners, p.reproj_px,
-                               p.ambiguity, p.alt_c2w)
+            out[i] = replace(p, status="outlier")
             active.pop(j)
     return out
 
@@ -521,8 +633,10 @@ def refine_jointly(dets: Sequence[Detection], poses: Sequence[FramePose], board:
     if len(posed) < 3:
         return intr, list(poses), float("nan")
     obj_all = board.chessboard_corners().astype(np.float32)
-    objs = [obj_all[by_index[p.index].ids] for p in posed]
-    imgs = [by_index[p.index].corners.astype(np.float32) for p in posed]
+    # Each frame's corners that its own pose fit (see _corner_inliers).
+    sel = [slice(None) if p.inliers is None else p.inliers for p in posed]
+    objs = [obj_all[by_index[p.index].ids][s] for p, s in zip(posed, sel)]
+    imgs = [by_index[p.index].corners[s].astype(np.float32) for p, s in zip(posed, sel)]
     rvecs, tvecs = [], []
     for p in posed:
         w2c = invert_rigid(p.c2w)
@@ -543,7 +657,7 @@ def refine_jointly(dets: Sequence[Detection], poses: Sequence[FramePose], board:
             w2c = invert_rigid(c2w)
             err = _rms(o.astype(np.float64), i.astype(np.float64), cv2.Rodrigues(w2c[:3, :3])[0],
                        w2c[:3, 3], new.K, new.dist_array)
-            p = FramePose(p.index, p.time, p.name, p.status, c2w, p.n_corners, err, p.ambiguity, p.alt_c2w)
+            p = replace(p, c2w=c2w, reproj_px=err)
         out.append(p)
     return new, out, float(rms)
 
