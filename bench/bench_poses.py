@@ -167,7 +167,7 @@ def speed(work: Path, seconds: float, repeats: int) -> None:
         det.detectBoard(gray)
     detect_ms = (time.perf_counter() - t0) / 10 * 1000
 
-    plain = DetectorConfig(max_side=100_000, track=False, refine=False)
+    plain = DetectorConfig(max_side=100_000, track=False, refine=False, saddle=False)
     fast = DetectorConfig()
     rows = []
     for label, cfg, workers in (("plain detectBoard, full resolution, 1 process", plain, 1),
