@@ -132,6 +132,14 @@ class RowTable:
 
     def adam_step(self, lr: float, b1: float = 0.9, b2: float = 0.99, eps: float = 1e-8) -> None:
         """One Adam step on the touched rows; their gradient is cleared."""
+        if self.data.device.type == "cpu":
+            from .fields_cpu import adam_rows    # numba; imported late (it imports this module)
+
+            self.t += 1
+            step = lr * math.sqrt(1 - b2 ** self.t) / (1 - b1 ** self.t)
+            adam_rows(self.data.numpy(), self.grad.numpy(), self.m.numpy(), self.v.numpy(),
+                      self.touched.numpy(), step, b1, b2, eps)
+            return
         idx = self.touched.nonzero()[:, 0]
         if idx.numel() == 0:
             return
@@ -463,7 +471,13 @@ def render_image(field: VoxelField, origins: torch.Tensor, dirs: torch.Tensor,
     d = dirs.reshape(-1, 3).to(field.device)
     out = []
     for s in range(0, o.shape[0], chunk):
-        r = render_rays(field, o[s:s + chunk], d[s:s + chunk])
+        if field.device.type == "cpu" and field.cfg.mode == "object":
+            n = o[s:s + chunk].shape[0]
+            res = torch.from_numpy(_cpu_rays(field, o[s:s + chunk], d[s:s + chunk], torch.zeros(n, 3), None,
+                                             torch.full((n,), 0.5)))
+            r = RayOutput(res[:, :3], res[:, 3], torch.zeros(n))
+        else:
+            r = render_rays(field, o[s:s + chunk], d[s:s + chunk])
         a = r.alpha.clamp(0, 1)
         if background is None:
             rgb = r.rgb / a.clamp_min(1e-6)[:, None]
@@ -475,6 +489,9 @@ def render_image(field: VoxelField, origins: torch.Tensor, dirs: torch.Tensor,
 
 
 # ---- training ---------------------------------------------------------------------------------
+
+RAY_RUN = 32     # CPU training draws rays in runs of this many consecutive bank entries
+
 
 @dataclass
 class RayBank:
@@ -595,6 +612,51 @@ def tv_loss(field: VoxelField, n: int, gen: torch.Generator | None = None) -> tu
     return (d ** 2).mean() if d.numel() else d.sum(), (s ** 2).mean() if s.numel() else s.sum()
 
 
+def _cpu_rays(field: VoxelField, origins: torch.Tensor, dirs: torch.Tensor, bg: torch.Tensor,
+              target: torch.Tensor | None, jitter: torch.Tensor) -> np.ndarray:
+    """Run the numba kernel (:mod:`.fields_cpu`) on world rays (B, 3); (B, 5) RGB, alpha, sq. error."""
+    from .fields_cpu import render_rays_cpu     # numba; imported late (it imports this module)
+
+    if field.cfg.mode != "object":
+        raise ValueError("the CPU kernel covers object mode only")
+    o = ((origins - field.center) / field.radius).float().contiguous().numpy()
+    B = o.shape[0]
+    out = np.zeros((B, 5), np.float32)
+    tgt = target if target is not None else bg
+    render_rays_cpu(o, dirs.float().contiguous().numpy(), jitter.float().contiguous().numpy(),
+                    bg.float().contiguous().numpy(), tgt.float().contiguous().numpy(),
+                    field.index.numpy(), field.occupancy().numpy(), field.res,
+                    field.density.data.numpy()[:, 0], field.sh.data.numpy(), field.density.grad.numpy()[:, 0],
+                    field.sh.grad.numpy(), field.density.touched.numpy(), field.sh.touched.numpy(),
+                    field.act_shift, field.step, field.cfg.sh_degree, field.cfg.weight_eps, 1.0 / (3 * B),
+                    target is not None, out)
+    return out
+
+
+def cpu_photometric_step(field: VoxelField, origins: torch.Tensor, dirs: torch.Tensor, bg: torch.Tensor,
+                         target: torch.Tensor, jitter: torch.Tensor) -> torch.Tensor:
+    """The photometric loss of :func:`render_rays` + MSE, on CPU without autograd: renders the
+    rays (B, 3) world origins / unit directions over ``bg`` (B, 3), compares with ``target``
+    (B, 3) and adds the gradient of the mean squared error into the field's gradient buffers
+    (as ``backward`` would). ``jitter`` (B,) in [0, 1) offsets the samples. Returns the MSE (0-d)."""
+    out = _cpu_rays(field, origins, dirs, bg, target, jitter)
+    return torch.tensor(float(out[:, 4].sum()) / (3 * out.shape[0]))
+
+
+def cpu_tv_step(field: VoxelField, n: int, gen: torch.Generator) -> tuple[float, float]:
+    """:func:`tv_loss` on CPU without autograd: adds ``tv_density`` / ``tv_sh`` times its
+    gradient into the field's buffers; returns the two means."""
+    from .fields_cpu import tv_grad
+
+    if field.n_active == 0:
+        return 0.0, 0.0
+    pick = torch.randint(0, field.n_active, (min(n, field.n_active),), generator=gen)
+    return tv_grad(pick.numpy(), field.active.numpy(), field.index.numpy(), field.res,
+                   field.density.data.numpy()[:, 0], field.sh.data.numpy(), field.density.grad.numpy()[:, 0],
+                   field.sh.grad.numpy(), field.density.touched.numpy(), field.sh.touched.numpy(),
+                   field.cfg.tv_density, field.cfg.tv_sh)
+
+
 def psnr(mse: float) -> float:
     return float(-10 * math.log10(max(mse, 1e-12)))
 
@@ -638,19 +700,33 @@ def train(state: TrainState, bank: RayBank, budget: Budget,
             state.stage += 1
         fld = state.field
         lr_scale = cfg.lr_final_ratio ** frac
-        pick = torch.randint(0, bank.n, (cfg.batch_rays,), generator=gen)
+        fast = dev.type == "cpu" and cfg.mode == "object"
+        if fast:
+            # Runs of neighbouring pixels: their rays read the same lattice rows back to back
+            # (cache hits in the CPU kernel); the runs themselves are drawn at random.
+            run = min(RAY_RUN, bank.n)
+            starts = torch.randint(0, bank.n - run + 1, (max(1, cfg.batch_rays // run),), generator=gen)
+            pick = (starts[:, None] + torch.arange(run)).reshape(-1)
+        else:
+            pick = torch.randint(0, bank.n, (cfg.batch_rays,), generator=gen)
         o = bank.origins[pick].to(dev)
         d = bank.dirs[pick].to(dev)
         c = bank.rgba[pick].to(dev)
         bg = torch.rand(cfg.batch_rays, 3, generator=gen).to(dev)
         target = c[:, :3] * c[:, 3:] + (1 - c[:, 3:]) * bg
-        out = render_rays(fld, o, d, bg, jitter=True)
-        mse = F.mse_loss(out.rgb, target)
-        loss = mse
-        if cfg.tv_density > 0 or cfg.tv_sh > 0:
-            tvd, tvs = tv_loss(fld, cfg.tv_points, gen)
-            loss = loss + cfg.tv_density * tvd + cfg.tv_sh * tvs
-        loss.backward()
+        if fast:
+            # Closed-form forward and backward in numba: gradients land in the tables' buffers.
+            mse = cpu_photometric_step(fld, o, d, bg, target, torch.rand(o.shape[0], generator=gen))
+            tvd, tvs = cpu_tv_step(fld, cfg.tv_points, gen) if cfg.tv_density > 0 or cfg.tv_sh > 0 else (0, 0)
+            loss = mse + cfg.tv_density * tvd + cfg.tv_sh * tvs
+        else:
+            out = render_rays(fld, o, d, bg, jitter=True)
+            mse = F.mse_loss(out.rgb, target)
+            loss = mse
+            if cfg.tv_density > 0 or cfg.tv_sh > 0:
+                tvd, tvs = tv_loss(fld, cfg.tv_points, gen)
+                loss = loss + cfg.tv_density * tvd + cfg.tv_sh * tvs
+            loss.backward()
         fld.density.adam_step(cfg.lr_density * lr_scale)
         fld.sh.adam_step(cfg.lr_sh * lr_scale)
         fld.reset_sentinel()
