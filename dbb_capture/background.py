@@ -89,8 +89,10 @@ class LayerField:
     """
 
     def __init__(self, layers: torch.Tensor, env: torch.Tensor, center: torch.Tensor, basis: torch.Tensor,
-                 heights: torch.Tensor, half: float, r_out: float):
-        """``layers`` (K, S, S, 4), ``env`` (He, We, 4) logits."""
+                 heights: torch.Tensor, half: float, r_out: float, guess: torch.Tensor | None = None):
+        """``layers`` (K, S, S, 4), ``env`` (He, We, 4) logits; ``guess`` (G, G) float, 1 where the
+        board plane's texel is a guess (no view saw it past the object), over the layers' square."""
+        self.guess = guess
         self.k, self.s = layers.shape[0], layers.shape[1]
         self.he, self.we = env.shape[0], env.shape[1]
         self.table = RowTable(torch.cat([layers.reshape(-1, 4), env.reshape(-1, 4)]))
@@ -207,16 +209,44 @@ class LayerField:
         """The same field with ``layer_px`` texels per layer side (a fresh optimiser state)."""
         lay = F.interpolate(self.layers.permute(0, 3, 1, 2), size=(layer_px, layer_px), mode="bilinear",
                             align_corners=False).permute(0, 2, 3, 1)
-        return LayerField(lay, self.env.clone(), self.center, self.basis, self.heights, self.half, self.r_out)
+        return LayerField(lay, self.env.clone(), self.center, self.basis, self.heights, self.half, self.r_out,
+                          self.guess)
+
+    def guessed(self, cam: CropCamera) -> np.ndarray:
+        """Pixels (H, W) bool of a crop camera whose ray meets the board plane where its colour is
+        a guess (continued from around the object, never seen): there a prediction error is no
+        evidence of the object."""
+        import cv2
+
+        h, w = cam.intr.height, cam.intr.width
+        if self.guess is None:
+            return np.zeros((h, w), bool)
+        o, d = pinhole_rays(cam.intr, cam.c2w)
+        basis = self.basis.cpu().numpy().astype(np.float64)
+        c = self.center.cpu().numpy().astype(np.float64)
+        ou, du = (o - c) @ basis.T, d @ basis.T
+        e = np.where(np.abs(du[:, 2]) < 1e-9, 1e-9, du[:, 2])
+        t = (-(c @ basis[2]) - ou[:, 2]) / e
+        pu, pv = ou[:, 0] + t * du[:, 0], ou[:, 1] + t * du[:, 1]
+        g = self.guess.shape[0]
+        mx = ((pu / self.half + 1) * 0.5 * g - 0.5).astype(np.float32).reshape(h, w)
+        my = ((pv / self.half + 1) * 0.5 * g - 0.5).astype(np.float32).reshape(h, w)
+        hit = cv2.remap(self.guess.cpu().numpy().astype(np.float32), mx, my, cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        return (hit > 0.5) & (t > 0).reshape(h, w)
 
     def state(self) -> dict:
-        return {"layers": self.layers.half().cpu(), "env": self.env.half().cpu(), "center": self.center.cpu(),
-                "basis": self.basis.cpu(), "heights": self.heights.cpu(), "half": self.half, "r_out": self.r_out}
+        st = {"layers": self.layers.half().cpu(), "env": self.env.half().cpu(), "center": self.center.cpu(),
+              "basis": self.basis.cpu(), "heights": self.heights.cpu(), "half": self.half, "r_out": self.r_out}
+        if self.guess is not None:
+            st["guess"] = self.guess.to(torch.uint8).cpu()
+        return st
 
     @classmethod
     def from_state(cls, st: dict, device: torch.device | str = "cpu") -> LayerField:
         return cls(st["layers"].float().to(device), st["env"].float().to(device), st["center"].float().to(device),
-                   st["basis"].float().to(device), st["heights"].float().to(device), st["half"], st["r_out"])
+                   st["basis"].float().to(device), st["heights"].float().to(device), st["half"], st["r_out"],
+                   st["guess"].float() if st.get("guess") is not None else None)
 
 
 def pinhole_rays(intr: Intrinsics, c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -350,6 +380,7 @@ def photo_init(fld: LayerField, views: list[PosedView], exclude_radius: float | 
     center = fld.center.cpu().numpy().astype(np.float64)
     h0 = center @ basis[2]
     layers = fld.layers.clone()
+    guess = None
     for li, hgt in enumerate(fld.heights.cpu().numpy().astype(np.float64)):
         pts = center + uu.reshape(-1, 1) * basis[0] + vv.reshape(-1, 1) * basis[1] + (hgt - h0) * basis[2]
         s1, s2, cnt = np.zeros((len(pts), 3)), np.zeros((len(pts), 3)), np.zeros(len(pts))
@@ -391,11 +422,14 @@ def photo_init(fld: LayerField, views: list[PosedView], exclude_radius: float | 
                 near = cv2.dilate(seen.reshape(s, s).astype(np.uint8), np.ones((3, 3), np.uint8),
                                   iterations=max(1, s // 8)).reshape(-1).astype(bool)
                 alpha = np.where(near, 0.95, alpha)   # only the gap under the object, not the whole square
+                # Remembered: the matte cannot trust the prediction where the plane is a guess.
+                guess = torch.from_numpy((near & ~seen).reshape(s, s).astype(np.float32))
                 seen = near
         t = layers[li].view(-1, 4)
         t[:, :3] = torch.from_numpy(np.where(seen[:, None], np.log(mean / (1 - mean)), 0.0)).float()
         t[:, 3] = torch.from_numpy(np.log(alpha / (1 - alpha))).float()
-    return LayerField(layers, fld.env.clone(), fld.center, fld.basis, fld.heights, fld.half, fld.r_out)
+    return LayerField(layers, fld.env.clone(), fld.center, fld.basis, fld.heights, fld.half, fld.r_out,
+                      guess if exclude_radius is not None else None)
 
 
 # --------------------------------------------------------------------------- training
@@ -472,6 +506,10 @@ class BackgroundModel:
     def render(self, cam: CropCamera) -> np.ndarray:
         """Predicted background (H, W, 3) uint8 in a crop camera (never the full frame)."""
         return self.field.render(cam)
+
+    def guessed(self, cam: CropCamera) -> np.ndarray:
+        """Pixels (H, W) bool of a crop camera where the prediction is a guess (see LayerField.guessed)."""
+        return self.field.guessed(cam)
 
     def save(self, path: Path) -> None:
         torch.save({"field": self.field.state(), "mode": self.mode, "frames": self.frames, "rays": self.rays,

@@ -254,12 +254,13 @@ class ObjectCrop:
 
 
 def object_crop(image: np.ndarray, src: Intrinsics, c2w: np.ndarray, center: np.ndarray, radius: float,
-                up: np.ndarray, size: int, fill: float, predict, matte_cfg=None) -> ObjectCrop:
+                up: np.ndarray, size: int, fill: float, predict, matte_cfg=None, guessed=None) -> ObjectCrop:
     """Crop, predict the background, matte: the per-frame work of preprocessing (pure function).
 
     ``image`` (H, W, 3) uint8 with intrinsics ``src`` (distortion allowed) and OpenCV ``c2w``;
-    ``predict(cam) -> (S, S, 3) uint8`` renders the background model in a crop camera. Pixels of
-    the crop outside the frame are transparent (and the crop is flagged).
+    ``predict(cam) -> (S, S, 3) uint8`` renders the background model in a crop camera;
+    ``guessed(cam) -> (S, S) bool`` (optional) marks where that prediction is only a guess.
+    Pixels of the crop outside the frame are transparent (and the crop is flagged).
     """
     from .matte import MatteConfig, matte, sphere_disc
 
@@ -267,7 +268,8 @@ def object_crop(image: np.ndarray, src: Intrinsics, c2w: np.ndarray, center: np.
     cam = crop_camera(c2w, src, center, radius, up, size, fill)
     observed, touched = cut_crop(image, cam, src, c2w)
     predicted = predict(cam)
-    rgba = matte(observed, predicted, sphere_disc(size, fill, mcfg.disc_margin), mcfg)
+    rgba = matte(observed, predicted, sphere_disc(size, fill, mcfg.disc_margin), mcfg,
+                 guessed(cam) if guessed is not None else None)
     if touched:
         inside, _ = cut_crop(np.full(image.shape[:2], 255, np.uint8), cam, src, c2w)
         rgba[..., 3] = np.minimum(rgba[..., 3], inside.reshape(size, size))

@@ -8,9 +8,17 @@ looks like behind the object in a crop camera; the matte is where the observatio
     alpha  = soft threshold of d (thresholds from the noise level measured outside the object)
              restricted to the projected bounding sphere, raised by its edge-aware (guided,
              the observed crop as guide) smoothing where d shows any difference,
-    then     morphology (drop specks, fill holes), fractional alpha at the edges from the
+    then     morphology (an opening cuts specks and thin misregistration lines apart, small
+             pieces are dropped, the object's thin parts grow back from what is kept, holes
+             are filled), fractional alpha at the edges from the
              compositing equation, and colour decontamination so edge pixels carry the
              object's colour, not the room's.
+
+Where the prediction is only a guess (without a clean plate, the table right behind the object
+that no view saw past it), a difference from it is no evidence of the object: there a pixel
+stays object only if the object's colours explain it better than the room's (colour
+histograms of this crop: the room from where the decision is sure, the object from the
+decided pixels whose colour the room does not show).
 """
 
 from __future__ import annotations
@@ -30,10 +38,12 @@ class MatteConfig:
     min_threshold: float = 0.035   # colour distance floor (0..1 RGB scale)
     shift_px: int = 1              # robustness to misregistration of the prediction
     disc_margin: float = 1.04      # the sphere's disc, slightly enlarged
-    min_blob: float = 0.01         # components smaller than this fraction of the largest are dropped
+    min_blob: float = 0.03         # components smaller than this fraction of the largest are dropped
     edge_px: int = 1               # width of the band where alpha is fractional
     guided_px: int = 3             # edge-aware smoothing of the soft alpha before the decision (0: off)
     guided_eps: float = 1e-3
+    colour_bins: int = 32          # per channel, of the room/object colour histograms (8 levels a bin)
+    colour_ratio: float = 1.0      # where the prediction is a guess: room if its colours explain a pixel this much better
 
 
 def sphere_disc(size: int, fill: float, margin: float = 1.0) -> np.ndarray:
@@ -106,22 +116,64 @@ def _edge_alpha(observed: np.ndarray, predicted: np.ndarray, core: np.ndarray, e
     fb = F - B
     denom = (fb * fb).sum(-1)
     a = ((I - B) * fb).sum(-1) / np.maximum(denom, 1e-6)
-    # Where object and room look alike the equation says nothing: keep the hard decision.
-    a = np.where(denom > 30.0 ** 2, np.clip(a, 0, 1), core[band].astype(np.float32))
+    # Where object and room look alike the equation says nothing, and off the line from B to F
+    # the pixel is no mix of the two (F is wrong there: a darker rim, another part): keep the
+    # hard decision.
+    resid = np.linalg.norm(I - B - a[:, None] * fb, axis=1)
+    mixed = (denom > 30.0 ** 2) & (resid < 0.3 * np.sqrt(denom))
+    a = np.where(mixed, np.clip(a, 0, 1), core[band].astype(np.float32))
     alpha[band] = a
     return alpha
 
 
+def colour_histogram(pixels: np.ndarray, bins: int) -> np.ndarray:
+    """Normalized, smoothed colour histogram (bins, bins, bins) float64 of RGB pixels (N, 3) uint8."""
+    from scipy.ndimage import gaussian_filter
+
+    q = pixels.astype(np.int32) * bins // 256
+    h = np.zeros((bins,) * 3, np.float64)
+    np.add.at(h, (q[:, 0], q[:, 1], q[:, 2]), 1.0)
+    h = gaussian_filter(h, 1.0, mode="constant")   # colours next to seen ones are likely too
+    return h / max(h.sum(), 1e-12)
+
+
+def room_by_colour(observed: np.ndarray, candidates: np.ndarray, room: np.ndarray, core: np.ndarray,
+                   bins: int = 16, ratio: float = 1.0) -> np.ndarray:
+    """Pixels of ``candidates`` (H, W) bool whose colour the room explains better than the object.
+
+    ``room``, ``core`` (H, W) bool: pixels surely room and pixels decided object. The object's
+    colours come from the core pixels outside ``candidates`` (decided where the evidence is
+    sound) and those whose colour is rare in the room (the 5% least likely room colour or
+    rarer), so room wrongly in the core does not teach the object model.
+    Returns (H, W) bool (all False when either side has too few pixels to judge).
+    """
+    none = np.zeros(candidates.shape, bool)
+    if core.sum() < 20 or room.sum() < 50 or not candidates.any():
+        return none
+    q = observed.astype(np.int32) * bins // 256
+    pr = colour_histogram(observed[room], bins)[q[..., 0], q[..., 1], q[..., 2]]
+    seed = (core & ~candidates) | (core & (pr < np.percentile(pr[room], 5)))
+    if seed.sum() < 10:
+        return none
+    po = colour_histogram(observed[seed], bins)[q[..., 0], q[..., 1], q[..., 2]]
+    return candidates & (pr > ratio * po)
+
+
 def matte(observed: np.ndarray, predicted: np.ndarray, disc: np.ndarray,
-          cfg: MatteConfig = MatteConfig()) -> np.ndarray:
+          cfg: MatteConfig = MatteConfig(), guessed: np.ndarray | None = None) -> np.ndarray:
     """Straight RGBA (H, W, 4) uint8 of the object from ``observed`` (H, W, 3) uint8 and the
-    predicted background ``predicted`` (H, W, 3) uint8, inside ``disc`` (H, W) bool."""
+    predicted background ``predicted`` (H, W, 3) uint8, inside ``disc`` (H, W) bool.
+
+    ``guessed`` (H, W) bool: pixels where the prediction is a guess (colour decides there).
+    """
     d = colour_distance(observed, predicted, cfg.shift_px)
     outside = ~disc
-    # Noise level from where no object can be (robust: median absolute distance).
-    # Without enough room outside the disc (a fixed window), the whole crop's median stands in:
-    # the room is most of it.
-    noise = float(np.median(d[outside] if outside.sum() > 50 else d)) / 0.6745
+    # Noise level from where no object can be. Robust to a room part the prediction gets wrong
+    # (a far wall seen edge-on): the lower quartile, scaled to the median it has on clean crops.
+    # Without enough room outside the disc (a fixed window), the whole crop stands in: the room
+    # is most of it.
+    ring = d[outside] if outside.sum() > 50 else d
+    noise = 1.6 * float(np.percentile(ring, 25)) / 0.6745
     t0 = max(cfg.min_threshold, cfg.low_sigmas * noise)
     t1 = max(t0 * 1.5, cfg.high_sigmas * noise)
     alpha = np.clip((d - t0) / (t1 - t0), 0, 1) * disc
@@ -134,9 +186,18 @@ def matte(observed: np.ndarray, predicted: np.ndarray, disc: np.ndarray,
         g = cv2.ximgproc.guidedFilter(guide, alpha.astype(np.float32), cfg.guided_px, cfg.guided_eps) * disc
         alpha = np.where(d > t0, np.maximum(alpha, g), alpha)
     core = alpha > 0.5
-    core = cv2.morphologyEx(core.astype(np.uint8), cv2.MORPH_OPEN, np.ones((2, 2), np.uint8)).astype(bool)
+    if guessed is not None and guessed.any():
+        sure_room = (outside | (d <= t0)) & ~guessed
+        core &= ~room_by_colour(observed, core & guessed, sure_room, core, cfg.colour_bins, cfg.colour_ratio)
     if core.any():
-        core = _fill_holes(_keep_large(core, cfg.min_blob))
+        # Specks and the thin lines a misregistered pattern leaves are cut apart by an opening and
+        # dropped; the thin parts of the object that the opening removed grow back from the
+        # pieces kept (within the decided pixels, a few pixels from them).
+        opened = cv2.morphologyEx(core.astype(np.uint8), cv2.MORPH_OPEN, np.ones((2, 2), np.uint8))
+        kept = _keep_large(opened.astype(bool), cfg.min_blob).astype(np.uint8)
+        for _ in range(3):
+            kept = cv2.dilate(kept, np.ones((3, 3), np.uint8)) & core
+        core = _fill_holes(kept.astype(bool))
     alpha = _edge_alpha(observed, predicted, core, cfg.edge_px) * disc
     alpha[alpha < 0.02] = 0
     # Decontaminate: observed = a F + (1 - a) B, so F = (observed - (1 - a) B) / a at the edges.

@@ -383,7 +383,7 @@ def _crop_segment(seg: _CropSegment, tick: Callable[[int], None] | None = None) 
     for f in seg.source.read(sorted(seg.c2w)):
         c2w = seg.c2w[f.index]
         oc = object_crop(f.image, seg.intr, c2w, sp.center, sp.radius, sp.up, seg.size, seg.fill,
-                         model.render, seg.matte)
+                         model.render, seg.matte, model.guessed)
         _write_png(seg.out / f"crops/{f.name}.png", cv2.cvtColor(oc.rgba, cv2.COLOR_RGBA2BGRA))
         _write_png(seg.out / f"masks/{f.name}.png", alpha_in_frame(oc.rgba[..., 3], oc.cam, seg.frame_intr, c2w))
         row = _sheet_row(f.image, seg.intr, c2w, sp.center, oc, prev) if f.index in seg.sheet_at else None

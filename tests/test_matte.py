@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from dbb_capture.crops import crop_camera, cut_crop
-from dbb_capture.matte import colour_distance, matte, sphere_disc
+from dbb_capture.matte import colour_distance, matte, room_by_colour, sphere_disc
 from dbb_capture.synth import UP, Renderer, SynthConfig, make_scene, render_object_rgba, sensor
 from dbb_capture.cameras import look_at
 
@@ -71,3 +71,52 @@ def test_colour_distance_ignores_one_pixel_shifts():
     shifted = np.roll(img, 1, axis=0)
     assert colour_distance(img, shifted, 1)[2:-2, 2:-2].max() < 1e-6
     assert colour_distance(img, shifted, 0)[2:-2, 2:-2].max() > 0.01
+
+
+def _table_scene(size=64, seed=0):
+    """A striped table (two browns), a blue object disc in the middle, a band of table below it."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:size, 0:size]
+    stripes = (np.sin(yy / 2.5 + 0.3 * np.sin(xx / 7)) > 0)[..., None]
+    room = np.where(stripes, [150, 90, 50], [95, 55, 35]).astype(np.float64)
+    obj = (xx - 32) ** 2 + (yy - 30) ** 2 <= 11 ** 2
+    obs = np.where(obj[..., None], [40, 70, 200], room)
+    noisy = lambda im: np.clip(im + rng.normal(0, 2.0, im.shape), 0, 255).astype(np.uint8)  # noqa: E731
+    return noisy(obs), noisy(room), obj, room
+
+
+def test_guessed_prediction_does_not_make_table_into_object():
+    """Where the prediction is a guess (a smooth fill of the table), the table's own colours say room."""
+    obs, pred, obj, room = _table_scene()
+    guessed = np.zeros(obj.shape, bool)
+    guessed[28:50, 14:50] = True                        # the table behind the object, never seen
+    pred[guessed] = room[guessed].mean(0).astype(np.uint8)
+    disc = sphere_disc(64, 0.9, 1.04)
+    plain = matte(obs, pred, disc)[..., 3] > 127
+    told = matte(obs, pred, disc, guessed=guessed)[..., 3] > 127
+    iou = lambda a: (a & obj).sum() / (a | obj).sum()  # noqa: E731
+    assert iou(plain) < 0.8                             # the guess's error looks like object
+    assert iou(told) > 0.93, iou(told)
+
+
+def test_room_by_colour_keeps_object_colours():
+    obs, _, obj, _ = _table_scene()
+    room = ~sphere_disc(64, 0.9, 1.04)
+    table_in_core = np.zeros(obj.shape, bool)
+    table_in_core[42:48, 20:44] = True                  # room wrongly decided object
+    core = obj | table_in_core
+    out = room_by_colour(obs, core, room, core)
+    assert out[table_in_core].mean() > 0.95 and out[obj].mean() < 0.02
+    assert not room_by_colour(obs, core, np.zeros_like(room), core).any()   # no room to learn from
+
+
+def test_noise_level_survives_a_mispredicted_room_part():
+    """Most of the room outside the disc predicted wrong (a far wall; pixels next to the right part
+    find it within the 1-px shifts): the object is still found."""
+    obs, pred, obj, _ = _table_scene()
+    outside = ~sphere_disc(64, 0.9, 1.04)
+    wrong = outside & (np.mgrid[0:64, 0:64][0] < 56)
+    pred[wrong] = np.clip(pred[wrong].astype(int) + 60, 0, 255).astype(np.uint8)
+    assert wrong.sum() > 0.7 * outside.sum()
+    a = matte(obs, pred, ~outside)[..., 3] > 127
+    assert (a & obj).sum() / (a | obj).sum() > 0.93
