@@ -38,7 +38,7 @@ class MatteConfig:
     min_threshold: float = 0.035   # colour distance floor (0..1 RGB scale)
     shift_px: int = 1              # robustness to misregistration of the prediction
     disc_margin: float = 1.04      # the sphere's disc, slightly enlarged
-    min_blob: float = 0.03         # components smaller than this fraction of the largest are dropped
+    min_blob: float = 0.1          # pieces under this fraction of the largest are dropped (specks; parts stay joined)
     edge_px: int = 1               # width of the band where alpha is fractional
     guided_px: int = 3             # edge-aware smoothing of the soft alpha before the decision (0: off)
     guided_eps: float = 1e-3
@@ -181,10 +181,11 @@ def matte(observed: np.ndarray, predicted: np.ndarray, disc: np.ndarray,
         # Edge-aware: alpha spreads within regions the image shows as one surface and stops at
         # its edges, so object areas coloured like the room take the decision of their surroundings.
         guide = observed.astype(np.float32) / 255.0
-        # Only raised, and only where the colour differs at all: boundaries stay where the
-        # evidence puts them; weak parts inside the object (a dark limb on a dark table) fill in.
+        # Only raised, and only where the colour differs at all (half the low threshold, 1.5
+        # noise sigmas): boundaries stay where the evidence puts them; weak parts inside the
+        # object (a dark limb on a dark table, a stripe of the table's colour) fill in.
         g = cv2.ximgproc.guidedFilter(guide, alpha.astype(np.float32), cfg.guided_px, cfg.guided_eps) * disc
-        alpha = np.where(d > t0, np.maximum(alpha, g), alpha)
+        alpha = np.where(d > 0.5 * t0, np.maximum(alpha, g), alpha)
     core = alpha > 0.5
     if guessed is not None and guessed.any():
         sure_room = (outside | (d <= t0)) & ~guessed

@@ -98,13 +98,37 @@ def test_background_field_mattes_the_object(plate_capture, plate):
     cfg = BackgroundConfig(steps=100, layer_px=128, batch_rays=4096)
     model = train_background(iter(train), len(train), center, radius, up, clean_plate=plate, cfg=cfg)
     assert model.mode == ("clean plate" if plate else "object video") and model.log.steps == 100
+    # Without a plate the board plane behind the object is a guess, and the field knows where.
+    assert (model.field.guess is None) == plate
     ious = []
     for i, v in enumerate(video[::2]):
-        oc = object_crop(v.image, v.intr, v.c2w, center, radius, up, 64, 0.9, model.render)
+        oc = object_crop(v.image, v.intr, v.c2w, center, radius, up, 64, 0.9, model.render,
+                         guessed=model.guessed)
+        if not plate and i == 0:
+            guessed = model.guessed(oc.cam)
+            assert 0.02 < guessed.mean() < 0.6 and not guessed[0, 0]   # behind the object, not the corners
         truth = _true_alpha(cap, 2 * i, oc.cam, v.intr, v.c2w)
         pred = oc.rgba[..., 3] > 127
         ious.append((truth & pred).sum() / (truth | pred).sum())
     assert np.median(ious) > (0.78 if plate else 0.5), ious  # 12 frames: little parallax without a plate
+
+
+def test_field_state_keeps_where_the_board_plane_is_a_guess(tmp_path):
+    center = np.array([0.3, 0.2, -0.08])
+    c2ws = _ring(center)
+    o, d = pinhole_rays(crop_camera(c2ws[0], _intr(), center, 0.1, UP, 32, 0.6).intr, c2ws[0])
+    bank = RayBank(torch.from_numpy(o).float(), torch.from_numpy(d).float(), torch.rand(len(o), 3))
+    fld = new_field(BackgroundConfig(layers=8), center, 0.1, UP, c2ws, bank, 64)
+    guess = torch.zeros(64, 64)
+    guess[24:40, 24:40] = 1.0                            # a square around the centre
+    fld = LayerField(fld.layers, fld.env, fld.center, fld.basis, fld.heights, fld.half, fld.r_out, guess)
+    cam = crop_camera(c2ws[5], _intr(), center, 0.1, UP, 48, 0.7)
+    g = fld.guessed(cam)
+    assert g[24, 24] and not g[0, 0] and not g[47, 47]   # the board plane under the centre only
+    back = LayerField.from_state(fld.state())
+    assert np.array_equal(back.guessed(cam), g)
+    plain = LayerField(fld.layers, fld.env, fld.center, fld.basis, fld.heights, fld.half, fld.r_out)
+    assert not plain.guessed(cam).any() and "guess" not in plain.state()
 
 
 def test_preprocess_writes_crops_dataset(plate_capture, tmp_path):

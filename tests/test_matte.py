@@ -81,7 +81,7 @@ def _table_scene(size=64, seed=0):
     room = np.where(stripes, [150, 90, 50], [95, 55, 35]).astype(np.float64)
     obj = (xx - 32) ** 2 + (yy - 30) ** 2 <= 11 ** 2
     obs = np.where(obj[..., None], [40, 70, 200], room)
-    noisy = lambda im: np.clip(im + rng.normal(0, 2.0, im.shape), 0, 255).astype(np.uint8)  # noqa: E731
+    noisy = lambda im: np.clip(im + rng.normal(0, 2.0, im.shape), 0, 255).astype(np.uint8)
     return noisy(obs), noisy(room), obj, room
 
 
@@ -94,7 +94,7 @@ def test_guessed_prediction_does_not_make_table_into_object():
     disc = sphere_disc(64, 0.9, 1.04)
     plain = matte(obs, pred, disc)[..., 3] > 127
     told = matte(obs, pred, disc, guessed=guessed)[..., 3] > 127
-    iou = lambda a: (a & obj).sum() / (a | obj).sum()  # noqa: E731
+    iou = lambda a: (a & obj).sum() / (a | obj).sum()
     assert iou(plain) < 0.8                             # the guess's error looks like object
     assert iou(told) > 0.93, iou(told)
 
