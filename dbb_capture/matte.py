@@ -43,7 +43,7 @@ class MatteConfig:
     guided_px: int = 3             # edge-aware smoothing of the soft alpha before the decision (0: off)
     guided_eps: float = 1e-3
     colour_bins: int = 32          # per channel, of the room/object colour histograms (8 levels a bin)
-    colour_ratio: float = 1.0      # where the prediction is a guess: room if its colours explain a pixel this much better
+    colour_ratio: float = 3.0      # where the prediction is a guess: room if its colours explain a pixel this much better
 
 
 def sphere_disc(size: int, fill: float, margin: float = 1.0) -> np.ndarray:
@@ -138,8 +138,9 @@ def colour_histogram(pixels: np.ndarray, bins: int) -> np.ndarray:
 
 
 def room_by_colour(observed: np.ndarray, candidates: np.ndarray, room: np.ndarray, core: np.ndarray,
-                   bins: int = 16, ratio: float = 1.0) -> np.ndarray:
-    """Pixels of ``candidates`` (H, W) bool whose colour the room explains better than the object.
+                   bins: int = 32, ratio: float = 3.0) -> np.ndarray:
+    """Pixels of ``candidates`` (H, W) bool whose colour the room explains ``ratio`` times better
+    than the object does.
 
     ``room``, ``core`` (H, W) bool: pixels surely room and pixels decided object. The object's
     colours come from the core pixels outside ``candidates`` (decided where the evidence is
