@@ -395,11 +395,19 @@ def select_views(dets: Sequence[Detection], board: BoardSpec, width: int, height
     return [good[k] for k in sorted(chosen)]
 
 
+def _intrinsics(width: int, height: int, K: np.ndarray, dist: np.ndarray) -> Intrinsics:
+    d = np.ravel(dist)
+    return Intrinsics(width, height, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]),
+                      tuple(float(v) for v in d[:5]))
+
+
 def calibrate(dets: Sequence[Detection], board: BoardSpec, width: int, height: int,
               max_views: int = 40, min_views: int = 3) -> Calibration:
     """Intrinsics (OpenCV k1, k2, p1, p2, k3) from board detections, rejecting outlier views.
 
-    Views whose own RMS exceeds max(3 x median, 1 px) are dropped and the fit repeated.
+    Views whose own RMS exceeds max(3 x median, 1 px) are dropped and the fit repeated; then
+    corners that disagree with their view's pose (see :func:`_corner_inliers`) are dropped and
+    the fit repeated once more.
     """
     views = select_views(dets, board, width, height, max_views)
     if len(views) < min_views:
@@ -411,7 +419,7 @@ def calibrate(dets: Sequence[Detection], board: BoardSpec, width: int, height: i
     for _ in range(3):
         objs = [obj_all[d.ids] for d in views]
         imgs = [d.corners.astype(np.float32) for d in views]
-        rms, K, dist, _, _, std, _, per_view = cv2.calibrateCameraExtended(
+        rms, K, dist, rvecs, tvecs, std, _, per_view = cv2.calibrateCameraExtended(
             objs, imgs, (width, height), None, None, flags=flags)
         per_view = per_view.ravel()
         bad = per_view > max(3 * np.median(per_view), 1.0)
@@ -419,9 +427,16 @@ def calibrate(dets: Sequence[Detection], board: BoardSpec, width: int, height: i
             break
         rejected += [d.name for d, b in zip(views, bad) if b]
         views = [d for d, b in zip(views, bad) if not b]
-    dist = np.ravel(dist)
-    intr = Intrinsics(width, height, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]),
-                      tuple(float(v) for v in dist[:5]))
+    intr = _intrinsics(width, height, K, dist)
+    # Partly hidden corners pull the focal length and principal point as they pull poses.
+    keep = [_corner_inliers(o.astype(np.float64), i.astype(np.float64), _c2w(r, t), intr, PoseConfig())
+            for o, i, r, t in zip(objs, imgs, rvecs, tvecs)]
+    if any(k is not None for k in keep):
+        objs = [o if k is None else o[k] for o, k in zip(objs, keep)]
+        imgs = [i if k is None else i[k] for i, k in zip(imgs, keep)]
+        rms, K, dist, _, _, std, _, _ = cv2.calibrateCameraExtended(
+            objs, imgs, (width, height), K, dist, flags=flags | cv2.CALIB_USE_INTRINSIC_GUESS)
+        intr = _intrinsics(width, height, K, dist)
     std = np.ravel(std)
     return Calibration(intr, float(rms), tuple(d.name for d in views), tuple(rejected),
                        float(std[0]), float(std[1]))
@@ -646,9 +661,7 @@ def refine_jointly(dets: Sequence[Detection], poses: Sequence[FramePose], board:
     rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(
         objs, imgs, (intr.width, intr.height), intr.K.copy(), intr.dist_array.copy(),
         rvecs, tvecs, flags=flags)
-    dist = np.ravel(dist)
-    new = Intrinsics(intr.width, intr.height, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]),
-                     float(K[1, 2]), tuple(float(v) for v in dist[:5]))
+    new = _intrinsics(intr.width, intr.height, K, dist)
     refined = {p.index: (_c2w(r, t), o, i) for p, r, t, o, i in zip(posed, rvecs, tvecs, objs, imgs)}
     out = []
     for p in poses:

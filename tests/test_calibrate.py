@@ -49,10 +49,11 @@ def test_real_photos_match_opencv_calibration(real_photos, tmp_path):
     cam = json.loads(out.read_text())
     K_ref, _ = _reference()
     # Four photos fix the focal length only loosely (a 0.05 px change of the corners moves fx
-    # by ~1.5%): OpenCV's own estimate of the fit's standard deviation sets the tolerance.
+    # by ~1.5%): OpenCV's own estimate of the fit's standard deviation sets the tolerance
+    # (3 sigma; the reference, calibrated elsewhere, carries its own error besides).
     assert cam["fx_std"] < 0.03 * cam["fx"] and cam["fy_std"] < 0.03 * cam["fy"]
-    assert abs(cam["fx"] - K_ref[0, 0]) < 2.5 * cam["fx_std"]
-    assert abs(cam["fy"] - K_ref[1, 1]) < 2.5 * cam["fy_std"]
+    assert abs(cam["fx"] - K_ref[0, 0]) < 3 * cam["fx_std"]
+    assert abs(cam["fy"] - K_ref[1, 1]) < 3 * cam["fy_std"]
     assert cam["rms"] <= 0.3 and (cam["width"], cam["height"]) == (640, 480)
     # The occluded photo (a hand over the board) is still posed with these intrinsics.
     board = BoardSpec.from_json(REAL_BOARD)
