@@ -92,24 +92,28 @@ def accuracy(work: Path, seconds: float, fps: float) -> None:
                           cap, overwrite=True)
         intr, cams, _ = load_ground_truth(cap)
         src = open_footage(cap)
-        known = errors(estimate_poses(src, board, intr), cams, board)
-        selfcal_run = estimate_poses(src, board, None, refine=True)
-        selfcal = errors(selfcal_run, cams, board)
+        known_run = estimate_poses(src, board, intr)
+        known = errors(known_run, cams, board)
+        selfcal = {}
+        for refine in (False, True):   # preprocess's default, and with --refine
+            run = estimate_poses(src, board, None, refine=refine)
+            selfcal[refine] = {**errors(run, cams, board), "fx_err_pct": 100 * abs(run.intrinsics.fx / intr.fx - 1)}
         in_view = board_in_view(cams, board, intr)
-        posed_ids = {p.index for p in estimate_poses(src, board, intr).posed}
+        posed_ids = {p.index for p in known_run.posed}
         posed_in_view = np.mean([i in posed_ids for i in np.flatnonzero(in_view)]) if in_view.any() else float("nan")
-        fx_err = 100 * abs(selfcal_run.intrinsics.fx / intr.fx - 1)
-        rows.append((name, known, selfcal, posed_in_view, int(in_view.sum()), fx_err))
-        print(json.dumps({"case": name, "known": known, "selfcal": selfcal,
-                          "posed_of_full_board_views": posed_in_view, "fx_err_pct": fx_err}), flush=True)
+        rows.append((name, known, selfcal, posed_in_view, int(in_view.sum())))
+        print(json.dumps({"case": name, "known": known, "selfcal": selfcal[False], "selfcal_refined": selfcal[True],
+                          "posed_of_full_board_views": posed_in_view}), flush=True)
     print("\n| capture | frames posed (all / full board in view) | rot median / p95 (deg) | "
-          "trans median / p95 (mm/m) | self-calibrated: fx err, rot median / p95, trans median |")
-    print("|---|---|---|---|---|")
-    for name, kn, sc, piv, n_in, fx_err in rows:
+          "trans median / p95 (mm/m) | self-calibrated: fx err, rot median / p95, trans median "
+          "| same with `--refine` |")
+    print("|---|---|---|---|---|---|")
+    for name, kn, sc, piv, n_in in rows:
         print(f"| {name} | {kn['posed']}/{kn['frames']} ({100 * kn['posed'] / kn['frames']:.0f}%) / "
               f"{100 * piv:.0f}% of {n_in} | {kn['rot_med']:.3f} / {kn['rot_p95']:.3f} | "
-              f"{kn['trans_med']:.2f} / {kn['trans_p95']:.2f} | {fx_err:.2f}%, "
-              f"{sc['rot_med']:.3f} / {sc['rot_p95']:.3f}, {sc['trans_med']:.2f} |")
+              f"{kn['trans_med']:.2f} / {kn['trans_p95']:.2f} | "
+              + " | ".join(f"{e['fx_err_pct']:.2f}%, {e['rot_med']:.3f} / {e['rot_p95']:.3f}, {e['trans_med']:.2f}"
+                           for e in (sc[False], sc[True])) + " |")
 
 
 def pingpong_video(src_capture: Path, out: Path, repeats: int, fps: int = 30) -> list[int]:
