@@ -1,6 +1,7 @@
 """Speed of the synthetic capture renderer: seconds per frame at a given resolution.
 
-Measures (a) the renderer alone in this process (ray casting, shading, anti-aliasing) and
+Measures (a) the renderer alone in this process (ray casting, shading, anti-aliasing; with the
+share of pixels the adaptive renderer supersampled) and
 (b) a whole `write_capture` (render in worker processes + sensor noise + H.264 encoding +
 masks; worker start-up included), per frame, and prints a Markdown table row for
 docs/benchmarks.md.
@@ -39,18 +40,20 @@ def main() -> None:
     times = np.arange(a.frames) / cfg.fps
     poses = camera_path(cfg, scene, times, np.random.default_rng(1))
     r.render(scene, poses[0], 0.0)  # warm-up
-    per = []
+    per, refined = [], []
     for i in range(a.frames):
         t0 = time.perf_counter()
         r.render(scene, poses[i], float(times[i]))
         per.append(time.perf_counter() - t0)
+        refined.append(r.refined)
     with tempfile.TemporaryDirectory() as d:
         t0 = time.perf_counter()
         res = write_capture(cfg, Path(d) / "cap")
         total = time.perf_counter() - t0
     load = os.getloadavg()[0]
     print(f"| {w}x{h}, {a.samples}x{a.samples} samples, {a.kind}, {a.frames} frames "
-          f"| {statistics.median(per) * 1000:.0f} ms | {res.seconds_per_frame * 1000:.0f} ms "
+          f"| {statistics.median(per) * 1000:.0f} ms | {100 * statistics.mean(refined):.0f} % "
+          f"| {res.seconds_per_frame * 1000:.0f} ms "
           f"| {total:.1f} s | {torch.get_num_threads()} threads / {a.workers or 'default'} workers, "
           f"{os.cpu_count()} cores, load {load:.1f} |")
 
