@@ -101,6 +101,27 @@ def test_synthetic_calibration_recovers_camera_and_rejects_bad_view():
     assert len(few.used) == 5 and abs(few.intrinsics.fx / truth.fx - 1) < 0.02
 
 
+def test_square_pixels_unless_the_corners_say_otherwise():
+    """fx = fy is imposed when the corners allow it (tighter principal point), never when the
+    camera's pixels are not square; corners pulled off by a hidden edge are dropped."""
+    board = BoardSpec(7, 5, 0.05, 0.0375, "DICT_5X5_100")
+    square = Intrinsics(1280, 960, 1100.0, 1100.0, 641.3, 478.2, (-0.15, 0.08, 0.0, 0.0, 0.0))
+    dets = _synthetic_detections(square, board, n=16, noise_px=0.05)
+    d = dets[3]
+    off = d.corners.copy()
+    off[5] += [1.2, 0.9]                      # one corner partly hidden
+    dets[3] = Detection(d.index, d.time, d.name, d.ids, off, 17, 100.0)
+    cal = calibrate(dets, board, square.width, square.height)
+    assert cal.square_pixels and cal.intrinsics.fx == cal.intrinsics.fy
+    assert abs(cal.intrinsics.fx / square.fx - 1) < 3 * cal.fx_std / square.fx + 1e-4
+    assert abs(cal.intrinsics.cx - square.cx) < 1.0 and abs(cal.intrinsics.cy - square.cy) < 1.0
+    assert cal.rms < 0.1   # the hidden corner does not count
+    wide = Intrinsics(1280, 960, 1133.0, 1100.0, 641.3, 478.2, (-0.15, 0.08, 0.0, 0.0, 0.0))
+    cal = calibrate(_synthetic_detections(wide, board, n=16, noise_px=0.05), board, wide.width, wide.height)
+    assert not cal.square_pixels
+    assert abs(cal.intrinsics.fx / cal.intrinsics.fy - 1.03) < 0.002
+
+
 @pytest.mark.parametrize("case", ["no_board_flag", "wrong_dictionary", "bad_board_json"])
 def test_calibrate_bad_input_exits_2(real_photos, tmp_path, case):
     args = ["calibrate", str(real_photos), "-o", str(tmp_path / "cam.json")]
