@@ -19,6 +19,7 @@ import argparse
 import json
 import os
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -85,8 +86,27 @@ def evaluate(run: Path, dataset: Path, still: dict | None, temperature: float, n
             "report": str(run / name)}
 
 
+def overrides(pairs: list[str]) -> tuple[rssm.RssmConfig, rssm.TrainConfig]:
+    """Model and training settings from ``name=value`` pairs (fields of RssmConfig / TrainConfig)."""
+    cfg, tcfg = rssm.RssmConfig(), rssm.TrainConfig()
+    for pair in pairs:
+        name, value = pair.split("=", 1)
+        target = cfg if hasattr(cfg, name) else tcfg
+        if not hasattr(target, name):
+            raise SystemExit(f"--set: no setting {name!r}")
+        cur = getattr(target, name)
+        v = None if value == "none" else (value == "true" if isinstance(cur, bool) else
+                                          type(cur)(value) if cur is not None else int(value))
+        if target is cfg:
+            cfg = replace(cfg, **{name: v})
+        else:
+            tcfg = replace(tcfg, **{name: v})
+    return cfg, tcfg
+
+
 def quality(dataset: Path, run: Path, capture: Path | None, minutes: float, steps: int | None, batch: int,
-            lr: float, temperature: float, train: bool) -> dict:
+            lr: float, temperature: float, train: bool, settings: list[str] = (),
+            start_frame: int | None = None, resume: bool = False) -> dict:
     """Train on a preprocess dataset (unless ``train`` is off), then evaluate with the still-view truth."""
     still = None
     if capture is not None:
@@ -98,8 +118,10 @@ def quality(dataset: Path, run: Path, capture: Path | None, minutes: float, step
                  "load_average_1min_before": round(os.getloadavg()[0], 2)}
     if train:
         t = time.perf_counter()
-        meta = rssm.train_run(dataset, run, rssm.RssmConfig(), rssm.TrainConfig(minutes, steps, batch=batch, lr=lr),
-                              overwrite=True, temperature=temperature)
+        cfg, tcfg = overrides(list(settings))
+        tcfg = replace(tcfg, minutes=minutes, steps=steps, batch=batch, lr=lr)
+        meta = rssm.train_run(dataset, run, cfg, tcfg, overwrite=not resume, resume=resume, temperature=temperature)
+        out["settings"] = list(settings)
         out.update({"train_steps": meta["training"]["steps"],
                     "train_minutes": round(meta["training"]["seconds"] / 60, 2),
                     "wall_minutes_train_and_eval": round((time.perf_counter() - t) / 60, 2),
@@ -111,8 +133,14 @@ def quality(dataset: Path, run: Path, capture: Path | None, minutes: float, step
         out.update({"train_steps": meta["training"]["steps"],
                     "train_minutes": round(meta["training"]["seconds"] / 60, 2)})
     out["load_average_1min_after"] = round(os.getloadavg()[0], 2)
+    if still is None and start_frame is not None:
+        # Fixed-camera footage is its own still-view truth, from any start frame.
+        data = rssm.load_sequences(dataset, rssm.load_model(run).cfg.size)
+        k = start_frame
+        still = {"first": data.rgba[k], "view": data.views[k], "truth": data.rgba[k + 1:k + 151], "frame": k}
     if still is not None:
-        out["still_view_eval"] = evaluate(run, dataset, still, temperature, f"report-still-t{temperature:g}")
+        name = f"report-still-t{temperature:g}" + ("" if start_frame is None else f"-from{start_frame}")
+        out["still_view_eval"] = evaluate(run, dataset, still, temperature, name)
     return out
 
 
@@ -134,12 +162,18 @@ def main() -> None:
     q.add_argument("--lr", type=float, default=rssm.TrainConfig.lr)
     q.add_argument("--temperature", type=float, default=1.0, help="run-time sampling temperature")
     q.add_argument("--no-train", action="store_true", help="only evaluate an existing run")
+    q.add_argument("--resume", action="store_true", help="train an existing run further (to --minutes in all)")
+    q.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                   help="a RssmConfig or TrainConfig setting other than its default (repeatable)")
+    q.add_argument("--start-frame", type=int, default=None,
+                   help="fixed-camera footage: start the still-view rollout at this frame (default: the report's)")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     if a.cmd == "speed":
         out = [speed(int(s)) for s in a.sizes.split(",")]
     else:
-        out = quality(a.dataset, a.run, a.capture, a.minutes, a.steps, a.batch, a.lr, a.temperature, not a.no_train)
+        out = quality(a.dataset, a.run, a.capture, a.minutes, a.steps, a.batch, a.lr, a.temperature, not a.no_train,
+                      a.set, a.start_frame, a.resume)
     print(json.dumps(out, indent=2))
 
 

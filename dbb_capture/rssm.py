@@ -80,6 +80,12 @@ class RssmConfig:
     skip: bool = True              # decoder sees the context frame: its encoder maps (U-Net) and its
                                    # pixels, warped by a predicted flow and blended by a predicted mask
     max_flow: float = 0.5          # largest flow, in image half-widths (grid_sample units)
+    open_loop_from: int = 1        # the training open loop starts from the filtering state of this frame:
+                                   # 1 = after the posterior has seen frames 0 and 1 (see sequence_loss)
+    motion_weight: float = 10.0    # extra weight of changing pixels in the reconstruction losses
+    decode_frames: int = 10        # frames decoded per window in each branch (a random subset of a
+                                   # longer window: the transition runs the whole window, the decoder,
+                                   # which costs most, only this many frames)
 
     def validate(self) -> None:
         if self.size not in SIZES:
@@ -108,6 +114,9 @@ class TrainConfig:
     checkpoint_seconds: float = 60.0
     seed: int = 0
     max_bad_steps: int = 20        # consecutive non-finite steps before giving up
+    horizon: int | None = None     # predicted frames per training window (1 context + horizon), cut from
+                                   # consecutive training frames; None: the dataset's own windows (the
+                                   # default: 30 gave less in a 15-minute budget, docs/benchmarks.md)
 
 
 # --------------------------------------------------------------------------- viewpoint encoding
@@ -288,9 +297,32 @@ def premultiply(rgba: torch.Tensor) -> torch.Tensor:
     return torch.cat([rgba[..., :3, :, :] * rgba[..., 3:4, :, :], rgba[..., 3:4, :, :]], -3)
 
 
-def _rec_loss(pred_pm: torch.Tensor, target_pm: torch.Tensor) -> torch.Tensor:
-    """Squared error summed over pixels (Gaussian, unit variance), mean over frames."""
-    return ((pred_pm - target_pm) ** 2).flatten(1).sum(1).mean()
+def _rec_loss(pred_pm: torch.Tensor, target_pm: torch.Tensor, weight: torch.Tensor | None = None) -> torch.Tensor:
+    """Squared error summed over pixels (Gaussian, unit variance), mean over frames; ``weight``
+    (N, 1, S, S) scales each pixel's error."""
+    err = (pred_pm - target_pm) ** 2
+    if weight is not None:
+        err = err * weight
+    return err.flatten(1).sum(1).mean()
+
+
+def motion_weights(x: torch.Tensor, scale: float) -> torch.Tensor:
+    """Per-pixel loss weights (B, T, 1, S, S) of premultiplied frames ``x`` (B, T, 4, S, S), T >= 2.
+
+    1 + ``scale`` * (largest channel change from the previous frame; frame 0 uses frame 1's): the
+    moving parts of a toy are a small fraction of the crop, and a plain per-pixel error is
+    minimised well enough by a still frame.
+    """
+    d = (x[:, 1:] - x[:, :-1]).abs().amax(2, keepdim=True)
+    return 1.0 + scale * torch.cat([d[:, :1], d], 1)
+
+
+def _decoded(n: int, k: int, first: int, device: torch.device) -> torch.Tensor:
+    """Indices of the frames to decode: all of ``first..n-1`` if at most ``k``, else ``k`` of them at
+    random (sorted); a long window is decoded sparsely so its cost stays that of a short one."""
+    if n - first <= k:
+        return torch.arange(first, n, device=device)
+    return first + torch.randperm(n - first, device=device)[:k].sort().values
 
 
 def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[torch.Tensor, dict]:
@@ -303,12 +335,16 @@ def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[to
     B, T1 = x.shape[:2]
     pe = view_encoding(views, cfg.view_freqs)
     emb = model.encoder(x.flatten(0, 1)).view(B, T1, -1)
-    # Context of every decoded frame: frame 0's encoder maps and pixels, repeated along time.
+    # Context of every decoded frame: frame 0's encoder maps, pixels and viewpoint, n rows per sequence.
     ctx0 = model.encoder.features(x[:, 0]) if cfg.skip else []
-    ctx_all = [c.repeat_interleave(T1, 0) for c in ctx0]
-    ctx_ol = [c.repeat_interleave(T1 - 1, 0) for c in ctx0]
-    pm_all, pm_ol = x[:, 0].repeat_interleave(T1, 0), x[:, 0].repeat_interleave(T1 - 1, 0)
-    pe_all, pe_ol = pe[:, 0].repeat_interleave(T1, 0), pe[:, 0].repeat_interleave(T1 - 1, 0)
+
+    def decode(h: torch.Tensor, z: torch.Tensor, ts: torch.Tensor) -> torch.Tensor:
+        """Frames ``ts`` of every sequence from states (B, len(ts), .) -> (B * len(ts), 4, S, S)."""
+        n = len(ts)
+        return model.decode(h.flatten(0, 1), z.flatten(0, 1), pe[:, ts].flatten(0, 1),
+                            [c.repeat_interleave(n, 0) for c in ctx0], x[:, 0].repeat_interleave(n, 0),
+                            pe[:, 0].repeat_interleave(n, 0))
+
     h = x.new_zeros(B, cfg.deter)
     hs, zs, kl_dyn, kl_rep, post_m, post_s = [], [], [], [], [], []
     z = None
@@ -328,12 +364,20 @@ def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[to
     dyn = torch.stack(kl_dyn).mean()
     rep = torch.clamp(torch.stack(kl_rep), min=cfg.free_nats).mean()
     kl = cfg.kl_balance * dyn + (1 - cfg.kl_balance) * rep
-    feat_h, feat_z = torch.stack(hs, 1).flatten(0, 1), torch.stack(zs, 1).flatten(0, 1)
-    rec = _rec_loss(model.decode(feat_h, feat_z, pe.flatten(0, 1), ctx_all, pm_all, pe_all), x.flatten(0, 1))
-    # Open loop, the way it runs: from the first frame's posterior sample, prior samples only.
-    ho, zo = hs[0], zs[0]
+    w = motion_weights(x, cfg.motion_weight) if cfg.motion_weight > 0 else None
+    ti = _decoded(T1, cfg.decode_frames + 1, 0, x.device)
+    rec = _rec_loss(decode(torch.stack(hs, 1)[:, ti], torch.stack(zs, 1)[:, ti], ti), x[:, ti].flatten(0, 1),
+                    None if w is None else w[:, ti].flatten(0, 1))
+    # Open loop, the way it runs: prior samples only, from the filtering state of frame k.
+    # k = 0 is the run-time start exactly, but one frame cannot tell which way a swing goes,
+    # so a sampled rollout from it is scored against one direction and the error is least for
+    # a still, averaged frame: the model learns to stop. From k = 1 the posterior has seen
+    # frames 0 and 1 (the direction is in z_1) and the open loop learns sustained motion; the
+    # run time samples z_1 from the prior, which the dynamics KL trains to cover those posteriors.
+    k = min(max(cfg.open_loop_from, 0), T1 - 2)
+    ho, zo = hs[k], zs[k]
     ol_h, ol_z, over = [], [], []
-    for t in range(1, T1):
+    for t in range(k + 1, T1):
         ho = model.transition(ho, zo)
         pm, ps = model.prior_stats(ho)
         zo = pm + ps * torch.randn_like(ps)
@@ -341,9 +385,9 @@ def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[to
         ol_z.append(zo)
         over.append(_kl(post_m[t].detach(), post_s[t].detach(), pm, ps).mean())
     overshoot = torch.stack(over).mean()
-    ol = _rec_loss(model.decode(torch.stack(ol_h, 1).flatten(0, 1), torch.stack(ol_z, 1).flatten(0, 1),
-                                pe[:, 1:].flatten(0, 1), ctx_ol, pm_ol, pe_ol),
-                x[:, 1:].flatten(0, 1))
+    oi = _decoded(T1, cfg.decode_frames, k + 1, x.device)
+    ol = _rec_loss(decode(torch.stack(ol_h, 1)[:, oi - k - 1], torch.stack(ol_z, 1)[:, oi - k - 1], oi),
+                   x[:, oi].flatten(0, 1), None if w is None else w[:, oi].flatten(0, 1))
     loss = rec + cfg.kl_scale * kl + cfg.overshoot_scale * overshoot + cfg.open_loop_scale * ol
     parts = {"loss": loss.item(), "rec": rec.item(), "open_loop": ol.item(), "kl_dyn": dyn.item(),
              "kl_rep": torch.stack(kl_rep).mean().item(), "overshoot": overshoot.item()}
@@ -510,9 +554,28 @@ def load_sequences(dataset: Path, size: int = 64) -> SequenceData:
                         {k: v for k, v in meta.items() if k != "frames"})
 
 
-def _batch(data: SequenceData, starts: np.ndarray, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
-    """Premultiplied RGBA (B, L, 4, S, S) float and views (B, L, 3) of windows starting at ``starts``."""
-    idx = starts[:, None] + np.arange(data.length)[None]
+def training_windows(data: SequenceData, horizon: int | None) -> tuple[np.ndarray, int]:
+    """Starts and length (1 + ``horizon``) of the training windows: runs of consecutive training
+    frames (no gap, no split change). Longer than the dataset's 1 + 10 windows so the transition
+    learns motion that goes on; the horizon shrinks to what the training frames allow, and
+    ``None`` keeps the dataset's windows."""
+    if horizon is None or horizon + 1 == data.length:
+        return data.starts("train"), data.length
+    n_train = int((data.splits == "train").sum())
+    for length in range(min(horizon + 1, n_train), data.length - 1, -1):
+        # At least half as many windows as frames: a handful of long windows would be memorised.
+        w = sequence_windows(data.times, data.splits, length)
+        starts = np.array([s for s, sp in w if sp == "train"], dtype=np.int64)
+        if len(starts) >= max(1, n_train // 2):
+            return starts, length
+    return data.starts("train"), data.length
+
+
+def _batch(data: SequenceData, starts: np.ndarray, device: torch.device,
+           length: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Premultiplied RGBA (B, L, 4, S, S) float and views (B, L, 3) of windows starting at ``starts``
+    (L = ``length``, default the dataset's window length)."""
+    idx = starts[:, None] + np.arange(length or data.length)[None]
     x = torch.from_numpy(data.rgba[idx]).to(device).permute(0, 1, 4, 2, 3).float() / 255.0
     return premultiply(x), torch.from_numpy(data.views[idx]).to(device)
 
@@ -562,11 +625,11 @@ def train(state: TrainState, data: SequenceData, tcfg: TrainConfig, ckpt: Path |
     A step whose loss or gradient is not finite is skipped (optimiser untouched) and counted;
     ``max_bad_steps`` in a row end training with a :class:`DbbError`.
     """
-    starts = data.starts("train")
+    starts, length = training_windows(data, tcfg.horizon)
     rng = np.random.default_rng(tcfg.seed + state.step)
     state.model.train()
     try:
-        _train_loop(state, data, tcfg, ckpt, on_step, starts, rng)
+        _train_loop(state, data, tcfg, ckpt, on_step, starts, length, rng)
     except KeyboardInterrupt:
         if ckpt is not None:             # an interrupted run resumes from here (--resume)
             state.save(ckpt)
@@ -577,14 +640,14 @@ def train(state: TrainState, data: SequenceData, tcfg: TrainConfig, ckpt: Path |
 
 
 def _train_loop(state: TrainState, data: SequenceData, tcfg: TrainConfig, ckpt: Path | None, on_step,
-                starts: np.ndarray, rng: np.random.Generator) -> None:
+                starts: np.ndarray, length: int, rng: np.random.Generator) -> None:
     model, device = state.model, next(state.model.parameters()).device
     last_ckpt = time.perf_counter()
     t_prev = time.perf_counter()
     in_a_row = 0
     while not _done(state, tcfg):
         pick = starts[rng.integers(0, len(starts), tcfg.batch)]
-        x, v = _batch(data, pick, device)
+        x, v = _batch(data, pick, device, length)
         loss, parts = sequence_loss(model, x, v)
         state.opt.zero_grad(set_to_none=True)
         ok = bool(torch.isfinite(loss))
@@ -647,6 +710,20 @@ def ssim(pred: np.ndarray, truth: np.ndarray) -> float:
 def motion_energy(frames: np.ndarray) -> float:
     """Mean absolute frame-to-frame change of premultiplied RGBA frames (T, ..., S, S)."""
     return float(np.mean(np.abs(np.diff(frames.astype(np.float64), axis=0)))) if len(frames) > 1 else 0.0
+
+
+def motion_coherence(frames: np.ndarray) -> float | None:
+    """Mean cosine between successive frame changes of frames (T, S, S, C), T >= 3.
+
+    Near 1 for smooth motion (a swing changes the same pixels the same way from one step to the
+    next), near 0 or below for jitter (changes that come and go at random); ``None`` if still.
+    """
+    d = np.diff(frames.astype(np.float64), axis=0).reshape(len(frames) - 1, -1)
+    n = np.linalg.norm(d, axis=1)
+    ok = (n[:-1] > 1e-9) & (n[1:] > 1e-9)
+    if not ok.any():
+        return None
+    return float(np.mean(np.sum(d[:-1] * d[1:], 1)[ok] / (n[:-1] * n[1:])[ok]))
 
 
 def _pm_np(rgba_u8_or_float: np.ndarray) -> np.ndarray:
@@ -770,12 +847,17 @@ def evaluate(stepper, data: SequenceData, max_windows: int = 64, rollout_steps: 
         truth_src = "dataset sequences (includes camera motion)"
         notes.append("motion-energy truth from the dataset's moving-camera sequences, not a still viewpoint")
     pred_mean = float(np.mean(pred_e))
+    coh = [c for c in (motion_coherence(r) for r in long) if c is not None]
+    truth_coh = motion_coherence(tr) if still_truth is not None else None
     half = len(pred_e) // 2
     motion = {"steps": rollout_steps, "rollouts": int(f0.shape[0]), "pred_energy": round(pred_mean, 6),
               "truth_energy": round(truth_e, 6), "truth_source": truth_src,
               "ratio": round(pred_mean / truth_e, 4) if truth_e > 0 else None,
               "ratio_first_half": round(float(np.mean(pred_e[:half])) / truth_e, 4) if truth_e > 0 else None,
-              "ratio_second_half": round(float(np.mean(pred_e[half:])) / truth_e, 4) if truth_e > 0 else None}
+              "ratio_second_half": round(float(np.mean(pred_e[half:])) / truth_e, 4) if truth_e > 0 else None,
+              # Smooth motion or jitter: mean cosine of successive frame changes (see motion_coherence).
+              "coherence": round(float(np.mean(coh)), 4) if coh else None,
+              "truth_coherence": None if truth_coh is None else round(truth_coh, 4)}
     report = EvalReport(split, len(starts), L - 1, ps, ss, motion, notes)
     figs = {"truth": truth, "methods": methods, "long": long, "pred_curve": pred_e, "truth_curve": truth_curve,
             "truth_energy": truth_e, "still_truth": None if still_truth is None else _pm_np(still_truth)}

@@ -120,8 +120,9 @@ def test_tiny_overfit_loss_drops(data):
     tc = rssm.TrainConfig(steps=40, batch=4, lr=2e-3)
     st = rssm.train(rssm.TrainState(m, rssm._optimizer(m, tc)), data, tc)
     first, last = st.history[0], st.history[-1]
-    assert last["rec"] < 0.5 * first["rec"]
-    assert last["open_loop"] < 0.5 * first["open_loop"]
+    # (Losses weighted toward moving pixels, on random frames of the windows: noisier than a plain error.)
+    assert last["rec"] < 0.65 * first["rec"]
+    assert last["open_loop"] < 0.65 * first["open_loop"]
 
 
 def test_run_folder_cli_resume_and_eval(crops, tmp_path):
@@ -176,6 +177,11 @@ def test_metrics_known_values(crops, data):
     a, b = np.full((8, 8, 4), 0.5), np.full((8, 8, 4), 0.6)
     assert rssm.psnr(a, b) == pytest.approx(20.0)
     assert rssm.motion_energy(np.stack([a, b, a])) == pytest.approx(0.1)
+    # Coherence: a steady change scores 1, back-and-forth jitter -1, a still sequence nothing.
+    ramp = np.stack([np.full((8, 8, 4), 0.1 * t) for t in range(5)])
+    assert rssm.motion_coherence(ramp) == pytest.approx(1.0)
+    assert rssm.motion_coherence(np.stack([a, b, a, b])) == pytest.approx(-1.0)
+    assert rssm.motion_coherence(np.stack([a, a, a])) is None
     # The nearest training frame of a training frame's own viewpoint is that frame (or one seen the same way).
     idx = rssm.nearest_training_frames(data, data.views[[2, 7]])
     assert np.allclose(data.views[idx][:, :2], data.views[[2, 7]][:, :2], atol=1.0)
@@ -235,3 +241,53 @@ def replace_cfg(cfg, **kw):
     from dataclasses import replace
 
     return replace(cfg, **kw)
+
+
+def test_training_windows_are_long_runs_of_consecutive_training_frames(data):
+    starts, length = rssm.training_windows(data, 30)
+    # 24 training frames here: the longest windows that still give >= 12 starts.
+    n_train = int((data.splits == "train").sum())
+    assert data.length < length <= n_train and len(starts) >= n_train // 2
+    idx = starts[:, None] + np.arange(length)[None]
+    assert (data.splits[idx] == "train").all()
+    assert np.allclose(np.diff(data.times[idx], axis=1), 0.1)
+    assert rssm.training_windows(data, None) == (pytest.approx(data.starts("train")), data.length)
+    # A gap in time (a dropped frame) splits the runs: no window crosses it.
+    n = 60
+    times = np.arange(n) / 10.0 + np.where(np.arange(n) >= 20, 1.0, 0.0)
+    gapped = rssm.SequenceData(data.source, data.rgba[np.arange(n) % len(data.rgba)], np.zeros((n, 3), np.float32),
+                               np.array(["train"] * n), times, [(0, "train")], 11)
+    starts, length = rssm.training_windows(gapped, 30)
+    assert length > 11 and len(starts) >= 30
+    assert all(s + length <= 20 or s >= 20 for s in starts)
+
+
+def test_open_loop_starts_after_two_frames_and_motion_weights(monkeypatch):
+    torch.manual_seed(0)
+    x = torch.rand(2, 11, 4, 32, 32)
+    v = torch.rand(2, 11, 3) * 40
+    for k, n_open in ((0, 10), (1, 9), (3, 7)):
+        m = rssm.Rssm(replace_cfg(SMALL, open_loop_from=k))
+        decoded = []
+        real = m.decoder.forward
+        monkeypatch.setattr(m.decoder, "forward", lambda f, c, p: decoded.append(len(f)) or real(f, c, p))
+        rssm.sequence_loss(m, x, v)
+        assert decoded == [2 * 11, 2 * n_open]                 # filtering frames, then the open loop
+    # A long window is decoded sparsely: decode_frames (+ 1 filtering) frames, the transition runs all 30 steps.
+    decoded.clear()
+    rssm.sequence_loss(m, torch.rand(2, 31, 4, 32, 32), torch.rand(2, 31, 3))
+    assert decoded == [2 * 11, 2 * 10]
+    ti = rssm._decoded(31, 10, 4, torch.device("cpu"))
+    assert len(ti) == 10 and ti.min() >= 4 and ti.max() <= 30 and bool((ti.diff() > 0).all())
+    w = rssm.motion_weights(torch.stack([torch.zeros(4, 8, 8), torch.zeros(4, 8, 8), torch.ones(4, 8, 8)])[None], 10.0)
+    assert w.shape == (1, 3, 1, 8, 8)
+    assert torch.equal(w[0, :2], torch.ones(2, 1, 8, 8)) and torch.equal(w[0, 2], torch.full((1, 8, 8), 11.0))
+    # The same model with and without the weights: changing pixels count more.
+    torch.manual_seed(0)
+    m = rssm.Rssm(replace_cfg(SMALL, motion_weight=0.0))
+    mw = rssm.Rssm(replace_cfg(SMALL, motion_weight=10.0))
+    mw.load_state_dict(m.state_dict())
+    torch.manual_seed(1)
+    plain = rssm.sequence_loss(m, x, v)[1]["rec"]
+    torch.manual_seed(1)
+    assert rssm.sequence_loss(mw, x, v)[1]["rec"] > 2 * plain
