@@ -176,7 +176,8 @@ def speed(work: Path, minutes: float) -> None:
         c2ws.append(p.c2w)
         up = up_from_cameras(np.stack(c2ws))
         t = time.monotonic()
-        object_crop(f.image, intr, p.c2w, np.array(obj["center"]), obj["radius"], up, 64, 0.9, model.render)
+        object_crop(f.image, intr, p.c2w, np.array(obj["center"]), obj["radius"], up, 64, 0.9, model.render,
+                    guessed=model.guessed)
         timings["crop+render+matte"] += time.monotonic() - t
         n += 1
     total = time.monotonic() - t_all
