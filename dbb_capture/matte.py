@@ -91,11 +91,16 @@ def _keep_large(mask: np.ndarray, min_blob: float) -> np.ndarray:
     return np.isin(lab, keep)
 
 
+F_SEARCH_PX = 2   # where the edge alpha looks for the object colour F (pixels either way)
+
+
 def _edge_alpha(observed: np.ndarray, predicted: np.ndarray, core: np.ndarray, edge_px: int) -> np.ndarray:
     """Fractional alpha (H, W) float32 in a band around ``core`` by the compositing equation.
 
-    With the object's colour F taken from the nearest surely-inside pixel and the background
-    B predicted, observed I = a F + (1 - a) B gives a = (I - B).(F - B) / |F - B|^2.
+    With the background B predicted and the object's colour F one of the surely-inside pixels
+    within ``F_SEARCH_PX`` (the one whose line from B passes closest to the pixel: an edge pixel
+    mixes the room with the object part next to it, not with the nearest stripe), observed
+    I = a F + (1 - a) B gives a = (I - B).(F - B) / |F - B|^2.
     """
     from scipy.ndimage import distance_transform_edt
 
@@ -113,6 +118,22 @@ def _edge_alpha(observed: np.ndarray, predicted: np.ndarray, core: np.ndarray, e
     I = obs[band]
     B = predicted.astype(np.float32)[band]
     F = local[iy[band], ix[band]]
+    by, bx = np.nonzero(band)
+    h, w = core.shape
+    best = np.full(len(I), np.inf, np.float32)
+    r = F_SEARCH_PX
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            yy, xx = np.clip(by + dy, 0, h - 1), np.clip(bx + dx, 0, w - 1)
+            fc = obs[yy, xx]
+            fbc = fc - B
+            den = np.maximum((fbc * fbc).sum(-1), 1e-6)
+            ac = np.clip(((I - B) * fbc).sum(-1) / den, 0, 1)
+            off = np.linalg.norm(I - B - ac[:, None] * fbc, axis=1) / np.sqrt(den)   # distance from the line
+            off = np.where(inside[yy, xx] & (den > 30.0 ** 2), off, np.inf)
+            better = off < best
+            best = np.where(better, off, best)
+            F = np.where(better[:, None], fc, F)
     fb = F - B
     denom = (fb * fb).sum(-1)
     a = ((I - B) * fb).sum(-1) / np.maximum(denom, 1e-6)
@@ -185,8 +206,10 @@ def matte(observed: np.ndarray, predicted: np.ndarray, disc: np.ndarray,
         # Only raised, and only where the colour differs at all (half the low threshold, 1.5
         # noise sigmas): boundaries stay where the evidence puts them; weak parts inside the
         # object (a dark limb on a dark table, a stripe of the table's colour) fill in.
-        g = cv2.ximgproc.guidedFilter(guide, alpha.astype(np.float32), cfg.guided_px, cfg.guided_eps) * disc
-        alpha = np.where(d > 0.5 * t0, np.maximum(alpha, g), alpha)
+        # Twice: a second pass carries the fill across a stripe the first could not bridge.
+        for _ in range(2):
+            g = cv2.ximgproc.guidedFilter(guide, alpha.astype(np.float32), cfg.guided_px, cfg.guided_eps) * disc
+            alpha = np.where(d > 0.5 * t0, np.maximum(alpha, g), alpha)
     core = alpha > 0.5
     if guessed is not None and guessed.any():
         sure_room = (outside | (d <= t0)) & ~guessed
