@@ -119,21 +119,19 @@ def _edge_alpha(observed: np.ndarray, predicted: np.ndarray, core: np.ndarray, e
     B = predicted.astype(np.float32)[band]
     F = local[iy[band], ix[band]]
     by, bx = np.nonzero(band)
-    h, w = core.shape
-    best = np.full(len(I), np.inf, np.float32)
-    r = F_SEARCH_PX
-    for dy in range(-r, r + 1):
-        for dx in range(-r, r + 1):
-            yy, xx = np.clip(by + dy, 0, h - 1), np.clip(bx + dx, 0, w - 1)
-            fc = obs[yy, xx]
-            fbc = fc - B
-            den = np.maximum((fbc * fbc).sum(-1), 1e-6)
-            ac = np.clip(((I - B) * fbc).sum(-1) / den, 0, 1)
-            off = np.linalg.norm(I - B - ac[:, None] * fbc, axis=1) / np.sqrt(den)   # distance from the line
-            off = np.where(inside[yy, xx] & (den > 30.0 ** 2), off, np.inf)
-            better = off < best
-            best = np.where(better, off, best)
-            F = np.where(better[:, None], fc, F)
+    hh, ww = core.shape
+    r = np.arange(-F_SEARCH_PX, F_SEARCH_PX + 1)
+    dy, dx = (g.reshape(-1, 1) for g in np.meshgrid(r, r, indexing="ij"))      # (K, 1) offsets
+    yy, xx = np.clip(by[None] + dy, 0, hh - 1), np.clip(bx[None] + dx, 0, ww - 1)  # (K, N)
+    fc = obs[yy, xx]                                                            # (K, N, 3) candidates
+    fbc = fc - B[None]
+    den = np.maximum((fbc * fbc).sum(-1), 1e-6)
+    ac = np.minimum(np.maximum(((I - B)[None] * fbc).sum(-1) / den, 0), 1)
+    off = np.linalg.norm((I - B)[None] - ac[..., None] * fbc, axis=-1) / np.sqrt(den)  # distance from the line
+    off = np.where(inside[yy, xx] & (den > 30.0 ** 2), off, np.inf)
+    k = off.argmin(0)
+    n = np.arange(len(I))
+    F = np.where(np.isfinite(off[k, n])[:, None], fc[k, n], F)
     fb = F - B
     denom = (fb * fb).sum(-1)
     a = ((I - B) * fb).sum(-1) / np.maximum(denom, 1e-6)
