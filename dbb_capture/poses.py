@@ -236,15 +236,20 @@ def refine_saddles(gray: np.ndarray, corners: np.ndarray, half: np.ndarray, blur
 
     ``gray`` (H, W) uint8, ``corners`` (N, 2) px, ``half`` (N,) int window half-sizes (keep the
     window inside the white margin around the corner, see :func:`corner_margins_px`).
-    Returns (corners (N, 2), refined (N,) bool); a corner whose fit is not a saddle or which
-    would move more than half its window keeps its input position.
+    Returns (corners (N, 2), refined (N,) bool); a corner whose fit is not a saddle, which
+    would move more than half its window, or whose window the image border cuts keeps its
+    input position.
     """
     corners = np.asarray(corners, np.float64).reshape(-1, 2)
     half = np.broadcast_to(np.asarray(half, np.int64), (len(corners),))
     out, ok = corners.copy(), np.zeros(len(corners), bool)
+    H, W = gray.shape[:2]
     for i, ((x0, y0), h) in enumerate(zip(corners.tolist(), half.tolist())):
         P = _saddle_operator(h, float(blur))
         M = math.isqrt(P.shape[1])
+        m = M // 2 + 1   # a window cut by the image border would not be symmetric
+        if not (m <= x0 <= W - 1 - m and m <= y0 <= H - 1 - m):
+            continue
         x, y, fitted = x0, y0, True
         for _ in range(iters):
             # getRectSubPix interpolates with float weights (remap rounds to 1/32 px).

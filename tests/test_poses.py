@@ -310,6 +310,10 @@ def test_saddle_refinement_finds_skewed_blurred_corners():
     edge = np.where(xx > 20.3, 200, 30).astype(np.uint8)
     got, ok = refine_saddles(cv2.GaussianBlur(edge, (0, 0), 1.2), np.array([[20.0, 20.0]]), np.array([5]))
     assert not ok[0] and np.allclose(got, [[20.0, 20.0]])
+    # A window the image border would cut is not fitted (it would not be symmetric).
+    img = _x_junction((4.3, 20.0), (0, 90))
+    got, ok = refine_saddles(img, np.array([[4.0, 20.0]]), np.array([5]))
+    assert not ok[0] and np.allclose(got, [[4.0, 20.0]])
 
 
 def test_saddle_corners_beat_opencv_corners(rendered):
