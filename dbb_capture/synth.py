@@ -369,10 +369,7 @@ def render_rays(scene: Scene, c2w: np.ndarray, rays_cam: torch.Tensor, t_obj: fl
     d = R @ rays_cam
     M = d.shape[1]
     light = torch.from_numpy(scene.light).float()
-    if object_only:
-        color, surf = torch.zeros((3, M)), torch.zeros(M, dtype=torch.uint8)
-    else:
-        color, surf = _render_background(scene, o, d, light)
+    color, surf = torch.zeros((3, M)), torch.zeros(M, dtype=torch.uint8)
     obj_hit = torch.zeros(M)
     if scene.obj is not None:
         # Only rays that pass through the bounding sphere (of the object posed at t) can hit it.
@@ -390,6 +387,13 @@ def render_rays(scene: Scene, c2w: np.ndarray, rays_cam: torch.Tensor, t_obj: fl
                 color[:, idx] = _shade(alb[got].T, n[got].T, p.T, o, light, specular=0.25)
                 obj_hit[idx] = 1.0
                 surf[idx] = which[got] + _SURF_OBJECT
+    if not object_only:
+        # The room only behind the rays that missed the object (most refined samples hit it).
+        miss = (obj_hit == 0).nonzero().squeeze(1) if bool(obj_hit.any()) else None
+        if miss is None:
+            color, surf = _render_background(scene, o, d, light)
+        elif len(miss):
+            color[:, miss], surf[miss] = _render_background(scene, o, d[:, miss], light)
     return color, obj_hit, surf
 
 
