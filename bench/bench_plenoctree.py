@@ -7,6 +7,8 @@ Each part evaluates a run folder written by ``dbb-train plenoctree`` (train it f
     python bench/bench_plenoctree.py lego RUN            # held-out PSNR (white) + SSIM, speed, size
     python bench/bench_plenoctree.py fox RUN             # held-out PSNR on the 17 listed frames
     python bench/bench_plenoctree.py synth OUT --minutes 10   # synthetic object, novel views
+    python bench/bench_plenoctree.py capture DATASET --capture CAPTURE --run RUN --minutes 10
+        # a synthetic capture through preprocess: held-out crops scored against the truth
     python bench/bench_plenoctree.py speed RUN           # render speed and size of the tree only
 """
 
@@ -137,11 +139,55 @@ def bench_synth(out: Path, minutes: float) -> dict:
             "ssim_white": mean_of(rows, "ssim_white"), "tree_mb": run.tree_path.stat().st_size / 1e6}
 
 
+def bench_capture(dataset: Path, capture: Path, run_dir: Path, minutes: float, res_max: int,
+                  train: bool) -> dict:
+    """Train on a preprocess dataset of a synthetic capture (crops.json) and score the tree on
+    the held-out crops (the dataset's test split) against the capture's ground truth: the
+    object alone rendered through each crop camera at its time, on black and on white. Also
+    against the preprocess crops themselves (their alpha is a matte, not the truth)."""
+    from dbb_capture.fields import FieldConfig
+    from dbb_capture.synth import load_ground_truth, render_object_rgba
+
+    if train:
+        fc = FieldConfig(res_max=res_max, res_start=min(32, res_max))
+        train_run(dataset, run_dir, RunConfig(minutes=minutes), fc, overwrite=True)
+    run = load_run(run_dir)
+    ds = load_dataset(dataset)
+    test = ds.split("test")
+    _, _, model = load_ground_truth(capture)
+    r = TreeRenderer(run.tree())
+    rows = []
+    for f in test:
+        gt = render_object_rgba(model, f.intr, f.c2w, float(f.time or 0.0)).astype(np.float32) / 255
+        _, _, crop = frame_tensors(f, 1.0)
+        row = {"frame": f.name}
+        for key, bg in (("black", (0.0, 0.0, 0.0)), ("white", (1.0, 1.0, 1.0))):
+            img = r.render(f.c2w, f.intr, bg)
+            b = np.asarray(bg, np.float32)
+            truth = gt[..., :3] * gt[..., 3:] + (1 - gt[..., 3:]) * b
+            mat = crop[..., :3] * crop[..., 3:] + (1 - crop[..., 3:]) * b
+            row[f"psnr_truth_{key}"] = psnr(float(((img - truth) ** 2).mean()))
+            row[f"psnr_crop_{key}"] = psnr(float(((img - mat) ** 2).mean()))
+            row[f"psnr_crop_vs_truth_{key}"] = psnr(float(((mat - truth) ** 2).mean()))
+        rows.append(row)
+    out = {"run": str(run_dir), "train_minutes": run.meta["training"]["seconds"] / 60,
+           "steps": run.meta["training"]["steps"], "final_lattice": run.meta["field"]["final_res"],
+           "heldout_views": len(test)}
+    for k in rows[0] if rows else ():
+        if k != "frame":
+            out[k] = mean_of(rows, k)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("part", choices=["lego", "fox", "synth", "speed"])
-    ap.add_argument("path", type=Path, help="run folder (lego, fox) or output folder (synth)")
+    ap.add_argument("part", choices=["lego", "fox", "synth", "speed", "capture"])
+    ap.add_argument("path", type=Path, help="run folder (lego, fox), output folder (synth) or dataset (capture)")
     ap.add_argument("--minutes", type=float, default=10.0)
+    ap.add_argument("--capture", type=Path, help="capture: the synthetic capture (its ground_truth/)")
+    ap.add_argument("--run", type=Path, help="capture: run folder to write (or read with --no-train)")
+    ap.add_argument("--res-max", type=int, default=128, help="capture: finest lattice")
+    ap.add_argument("--no-train", action="store_true", help="capture: score an existing run")
     ap.add_argument("--repeats", type=int, default=8)
     ap.add_argument("--json", type=Path, default=None, help="also write the figures here")
     a = ap.parse_args(argv)
@@ -151,6 +197,10 @@ def main(argv: list[str] | None = None) -> int:
         res = bench_speed(a.path, a.repeats)
     elif a.part == "fox":
         res = bench_fox(a.path)
+    elif a.part == "capture":
+        if a.capture is None or a.run is None:
+            ap.error("capture needs --capture and --run")
+        res = bench_capture(a.path, a.capture, a.run, a.minutes, a.res_max, not a.no_train)
     else:
         res = bench_synth(a.path, a.minutes)
     return emit(res, a.json)
