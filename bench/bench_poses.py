@@ -14,6 +14,7 @@ fast path over 2 spawned processes. Prints Markdown rows for docs/benchmarks.md.
 
     flock /tmp/dbb-bench.lock .venv/bin/python bench/bench_poses.py accuracy --work /tmp/dbb-bench-poses
     flock /tmp/dbb-bench.lock .venv/bin/python bench/bench_poses.py speed --work /tmp/dbb-bench-poses
+    flock -s /tmp/dbb-bench.lock .venv/bin/python bench/bench_poses.py calibration --work /tmp/dbb-bench-poses
 """
 
 from __future__ import annotations
@@ -197,9 +198,28 @@ def speed(work: Path, seconds: float, repeats: int) -> None:
               f"{e['rot_med']:.3f} / {e['rot_p95']:.3f} | {e['trans_med']:.2f} / {e['trans_p95']:.2f} |")
 
 
+def calibration(work: Path) -> None:
+    """`dbb-capture calibrate` on the accuracy captures (rendered by ``accuracy``): OpenCV's
+    calibration (the default) against ``--precise``, errors against the true intrinsics."""
+    from dbb_capture.poses import calibrate_footage
+    from dbb_capture.synth import load_ground_truth
+
+    print("| capture | default: fx / fy err, cx / cy err (px), RMS px | `--precise`: same |")
+    print("|---|---|---|")
+    for k, (name, board, _, _) in enumerate(CASES):
+        intr, _, _ = load_ground_truth(work / f"acc{k}")
+        cells = []
+        for precise in (False, True):
+            c = calibrate_footage(open_footage(work / f"acc{k}"), board, precise=precise)
+            i = c.intrinsics
+            cells.append(f"{100 * (i.fx / intr.fx - 1):+.2f}% / {100 * (i.fy / intr.fy - 1):+.2f}%, "
+                         f"{i.cx - intr.cx:+.2f} / {i.cy - intr.cy:+.2f}, {c.rms:.3f}")
+        print(f"| {name} | " + " | ".join(cells) + " |", flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("what", choices=["accuracy", "speed"])
+    ap.add_argument("what", choices=["accuracy", "speed", "calibration"])
     ap.add_argument("--work", type=Path, default=Path("/tmp/dbb-bench-poses"),
                     help="Folder for the rendered captures (reused when present).")
     ap.add_argument("--seconds", type=float, default=4.8, help="Length of each synthetic capture.")
@@ -209,6 +229,8 @@ def main() -> None:
     a.work.mkdir(parents=True, exist_ok=True)
     if a.what == "accuracy":
         accuracy(a.work, a.seconds, a.fps)
+    elif a.what == "calibration":
+        calibration(a.work)
     else:
         speed(a.work, a.seconds, a.repeats)
 

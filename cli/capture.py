@@ -113,13 +113,18 @@ def _workers(value: int | None) -> int:
               help="Most board views used (the most diverse are chosen).")
 @click.option("--workers", type=click.IntRange(1, 64), default=None,
               help="Processes decoding and detecting (default: up to 2).")
+@click.option("--precise", is_flag=True,
+              help="Saddle-point corners, off-pose corners dropped, square pixels unless the corners "
+                   "call for two focal lengths (default: OpenCV's own calibration).")
 @overwrite_option
 def calibrate(input_path: Path, board_path: Path | None, output: Path, fps: float | None,
-              max_views: int, workers: int | None, overwrite: bool) -> None:
+              max_views: int, workers: int | None, precise: bool, overwrite: bool) -> None:
     """Calibrate camera intrinsics from board footage INPUT.
 
     INPUT is a video file, a folder of images or RAW files, a Record3D .r3d export, or a
-    capture folder. Writes camera.json with the reprojection RMS as "rms".
+    capture folder. Writes camera.json with the reprojection RMS as "rms". By default the
+    result is OpenCV's calibration of the same corners; --precise is more accurate from many
+    views (see docs/commands/calibrate.md).
     """
     from dbb_capture.board import BoardSpec
     from dbb_capture.errors import DbbError
@@ -141,7 +146,7 @@ def calibrate(input_path: Path, board_path: Path | None, output: Path, fps: floa
         task = prog.add_task("detect board", total=None, info="")
         cal = calibrate_footage(source, board, fps, max_views, workers=_workers(workers),
                                 tick=lambda n: prog.advance(task, n),
-                                total=lambda n: prog.update(task, total=n))
+                                total=lambda n: prog.update(task, total=n), precise=precise)
     write_json(output, cal.to_json())
     i = cal.intrinsics
     console.print(f"[green]wrote[/green] {output}: fx {i.fx:.2f} fy {i.fy:.2f} cx {i.cx:.2f} "

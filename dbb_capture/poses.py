@@ -409,12 +409,16 @@ def _intrinsics(width: int, height: int, K: np.ndarray, dist: np.ndarray) -> Int
 
 
 def calibrate(dets: Sequence[Detection], board: BoardSpec, width: int, height: int,
-              max_views: int = 40, min_views: int = 3) -> Calibration:
+              max_views: int = 40, min_views: int = 3, precise: bool = True) -> Calibration:
     """Intrinsics (OpenCV k1, k2, p1, p2, k3) from board detections, rejecting outlier views.
 
-    Views whose own RMS exceeds max(3 x median, 1 px) are dropped and the fit repeated; then
-    corners that disagree with their view's pose (see :func:`_corner_inliers`) are dropped and
-    the fit repeated once more.
+    Views whose own RMS exceeds max(3 x median, 1 px) are dropped and the fit repeated. With
+    ``precise``, corners that disagree with their view's pose (see :func:`_corner_inliers`) are
+    dropped and the fit repeated once more, and fx = fy is imposed unless the corners call for
+    two focal lengths. Without it, the fit is OpenCV's own (every corner of the kept views, free
+    fx and fy), which is what OpenCV's calibration tools compute: from a few views the focal
+    length is loose (+-3% from 4 photos) and either refinement alone moves it by 1-1.5 of its
+    standard deviations, so only OpenCV's estimator reproduces OpenCV's figures there.
     """
     views = select_views(dets, board, width, height, max_views)
     if len(views) < min_views:
@@ -434,6 +438,10 @@ def calibrate(dets: Sequence[Detection], board: BoardSpec, width: int, height: i
             break
         rejected += [d.name for d, b in zip(views, bad) if b]
         views = [d for d, b in zip(views, bad) if not b]
+    std = np.ravel(std)
+    if not precise:
+        return Calibration(_intrinsics(width, height, K, dist), float(rms), tuple(d.name for d in views),
+                           tuple(rejected), float(std[0]), float(std[1]))
     intr = _intrinsics(width, height, K, dist)
     # Partly hidden corners pull the focal length and principal point as they pull poses.
     keep = [_corner_inliers(o.astype(np.float64), i.astype(np.float64), _c2w(r, t), intr, PoseConfig())
@@ -443,7 +451,7 @@ def calibrate(dets: Sequence[Detection], board: BoardSpec, width: int, height: i
         imgs = [i if k is None else i[k] for i, k in zip(imgs, keep)]
         rms, K, dist, _, _, std, _, _ = cv2.calibrateCameraExtended(
             objs, imgs, (width, height), K, dist, flags=flags | cv2.CALIB_USE_INTRINSIC_GUESS)
-    std = np.ravel(std)
+        std = np.ravel(std)
     fx_std, fy_std = float(std[0]), float(std[1])
     # Square pixels (fx = fy) unless the corners say otherwise (likelihood-ratio test, 1 dof,
     # p = 0.001): a free aspect ratio trades off against the principal point and leaves both
@@ -721,12 +729,18 @@ def detect_sampled(source: FootageSource, board: BoardSpec, fps: float | None = 
 def calibrate_footage(source: FootageSource, board: BoardSpec, fps: float | None = None,
                       max_views: int = 40, blur_ratio: float = 0.4, workers: int = 1,
                       tick: Callable[[int], None] | None = None,
-                      total: Callable[[int], None] | None = None) -> Calibration:
-    """Intrinsics of the camera that filmed ``source`` (sharp frames only)."""
-    dets = detect_sampled(source, board, fps, DetectorConfig(), workers, tick, total)
+                      total: Callable[[int], None] | None = None,
+                      precise: bool = False) -> Calibration:
+    """Intrinsics of the camera that filmed ``source`` (sharp frames only).
+
+    By default OpenCV's calibration (``cornerSubPix`` corners, see :func:`calibrate`), so the
+    result agrees with OpenCV's tools; ``precise``: saddle-point corners, off-pose corners
+    dropped, square pixels (half the corner error on synthetic footage, see docs/benchmarks.md).
+    """
+    dets = detect_sampled(source, board, fps, DetectorConfig(saddle=precise), workers, tick, total)
     blurry = blurry_mask(np.array([d.sharpness for d in dets]), blur_ratio)
     return calibrate([d for d, b in zip(dets, blurry) if not b], board, source.info.width,
-                     source.info.height, max_views)
+                     source.info.height, max_views, precise=precise)
 
 @dataclass(frozen=True)
 class PoseRun:
