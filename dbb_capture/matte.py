@@ -91,16 +91,11 @@ def _keep_large(mask: np.ndarray, min_blob: float) -> np.ndarray:
     return np.isin(lab, keep)
 
 
-F_SEARCH_PX = 2   # where the edge alpha looks for the object colour F (pixels either way)
-
-
 def _edge_alpha(observed: np.ndarray, predicted: np.ndarray, core: np.ndarray, edge_px: int) -> np.ndarray:
     """Fractional alpha (H, W) float32 in a band around ``core`` by the compositing equation.
 
-    With the background B predicted and the object's colour F one of the surely-inside pixels
-    within ``F_SEARCH_PX`` (the one whose line from B passes closest to the pixel: an edge pixel
-    mixes the room with the object part next to it, not with the nearest stripe), observed
-    I = a F + (1 - a) B gives a = (I - B).(F - B) / |F - B|^2.
+    With the object's colour F taken from the nearest surely-inside pixel and the background
+    B predicted, observed I = a F + (1 - a) B gives a = (I - B).(F - B) / |F - B|^2.
     """
     from scipy.ndimage import distance_transform_edt
 
@@ -118,20 +113,6 @@ def _edge_alpha(observed: np.ndarray, predicted: np.ndarray, core: np.ndarray, e
     I = obs[band]
     B = predicted.astype(np.float32)[band]
     F = local[iy[band], ix[band]]
-    by, bx = np.nonzero(band)
-    hh, ww = core.shape
-    r = np.arange(-F_SEARCH_PX, F_SEARCH_PX + 1)
-    dy, dx = (g.reshape(-1, 1) for g in np.meshgrid(r, r, indexing="ij"))      # (K, 1) offsets
-    yy, xx = np.clip(by[None] + dy, 0, hh - 1), np.clip(bx[None] + dx, 0, ww - 1)  # (K, N)
-    fc = obs[yy, xx]                                                            # (K, N, 3) candidates
-    fbc = fc - B[None]
-    den = np.maximum((fbc * fbc).sum(-1), 1e-6)
-    ac = np.minimum(np.maximum(((I - B)[None] * fbc).sum(-1) / den, 0), 1)
-    off = np.linalg.norm((I - B)[None] - ac[..., None] * fbc, axis=-1) / np.sqrt(den)  # distance from the line
-    off = np.where(inside[yy, xx] & (den > 30.0 ** 2), off, np.inf)
-    k = off.argmin(0)
-    n = np.arange(len(I))
-    F = np.where(np.isfinite(off[k, n])[:, None], fc[k, n], F)
     fb = F - B
     denom = (fb * fb).sum(-1)
     a = ((I - B) * fb).sum(-1) / np.maximum(denom, 1e-6)
@@ -204,10 +185,8 @@ def matte(observed: np.ndarray, predicted: np.ndarray, disc: np.ndarray,
         # Only raised, and only where the colour differs at all (half the low threshold, 1.5
         # noise sigmas): boundaries stay where the evidence puts them; weak parts inside the
         # object (a dark limb on a dark table, a stripe of the table's colour) fill in.
-        # Twice: a second pass carries the fill across a stripe the first could not bridge.
-        for _ in range(2):
-            g = cv2.ximgproc.guidedFilter(guide, alpha.astype(np.float32), cfg.guided_px, cfg.guided_eps) * disc
-            alpha = np.where(d > 0.5 * t0, np.maximum(alpha, g), alpha)
+        g = cv2.ximgproc.guidedFilter(guide, alpha.astype(np.float32), cfg.guided_px, cfg.guided_eps) * disc
+        alpha = np.where(d > 0.5 * t0, np.maximum(alpha, g), alpha)
     core = alpha > 0.5
     if guessed is not None and guessed.any():
         sure_room = (outside | (d <= t0)) & ~guessed
