@@ -141,6 +141,9 @@ def quality(dataset: Path, run: Path, capture: Path | None, minutes: float, step
     if still is not None:
         name = f"report-still-t{temperature:g}" + ("" if start_frame is None else f"-from{start_frame}")
         out["still_view_eval"] = evaluate(run, dataset, still, temperature, name)
+        if capture is None:
+            k = still["frame"]
+            out["still_view_eval"]["motion"]["truth_source"] = f"the footage itself, frames {k + 1}-{k + 150}"
     return out
 
 
