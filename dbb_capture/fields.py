@@ -78,7 +78,7 @@ class FieldConfig:
     max_points: int = 6_000_000     # never upsample past this many active points (memory, time)
     step_cells: float = 0.5         # sample spacing along rays
     batch_rays: int = 4096
-    lr_density: float = 1.0
+    lr_density: float = 10.0        # density lives per normalized unit: ~300 for one opaque 256^3 cell
     lr_sh: float = 0.3
     lr_final_ratio: float = 0.1     # learning rates decay exponentially to this fraction
     tv_density: float = 1e-5        # total-variation weights (mean squared neighbour difference)
