@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .cameras import Intrinsics, invert_rigid, look_at, pixel_grid
+from .cameras import Intrinsics, invert_rigid, look_at
 from .errors import DbbError
 
 

@@ -248,6 +248,12 @@ class VoxelField:
     def n_active(self) -> int:
         return int(self.active.numel())
 
+    @property
+    def cpu_kernel(self) -> bool:
+        """Whether training and rendering run the numba kernel (:mod:`.fields_cpu`): object mode
+        on the CPU; CUDA and scene mode take the PyTorch path."""
+        return self.device.type == "cpu" and self.cfg.mode == "object"
+
     # ---- queries --------------------------------------------------------------------------
     def _corners(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Rows (M, 8) and trilinear weights (M, 8) for lattice-space points (M, 3)."""
@@ -471,7 +477,7 @@ def render_image(field: VoxelField, origins: torch.Tensor, dirs: torch.Tensor,
     d = dirs.reshape(-1, 3).to(field.device)
     out = []
     for s in range(0, o.shape[0], chunk):
-        if field.device.type == "cpu" and field.cfg.mode == "object":
+        if field.cpu_kernel:
             n = o[s:s + chunk].shape[0]
             res = torch.from_numpy(_cpu_rays(field, o[s:s + chunk], d[s:s + chunk], torch.zeros(n, 3), None,
                                              torch.full((n,), 0.5)))
@@ -617,8 +623,8 @@ def _cpu_rays(field: VoxelField, origins: torch.Tensor, dirs: torch.Tensor, bg: 
     """Run the numba kernel (:mod:`.fields_cpu`) on world rays (B, 3); (B, 5) RGB, alpha, sq. error."""
     from .fields_cpu import render_rays_cpu     # numba; imported late (it imports this module)
 
-    if field.cfg.mode != "object":
-        raise ValueError("the CPU kernel covers object mode only")
+    if not field.cpu_kernel:
+        raise ValueError("the CPU kernel covers object mode on the CPU only")
     o = ((origins - field.center) / field.radius).float().contiguous().numpy()
     B = o.shape[0]
     out = np.zeros((B, 5), np.float32)
@@ -700,7 +706,7 @@ def train(state: TrainState, bank: RayBank, budget: Budget,
             state.stage += 1
         fld = state.field
         lr_scale = cfg.lr_final_ratio ** frac
-        fast = dev.type == "cpu" and cfg.mode == "object"
+        fast = fld.cpu_kernel
         if fast:
             # Runs of neighbouring pixels: their rays read the same lattice rows back to back
             # (cache hits in the CPU kernel); the runs themselves are drawn at random.
@@ -712,7 +718,7 @@ def train(state: TrainState, bank: RayBank, budget: Budget,
         o = bank.origins[pick].to(dev)
         d = bank.dirs[pick].to(dev)
         c = bank.rgba[pick].to(dev)
-        bg = torch.rand(cfg.batch_rays, 3, generator=gen).to(dev)
+        bg = torch.rand(pick.numel(), 3, generator=gen).to(dev)   # runs may round the batch down
         target = c[:, :3] * c[:, 3:] + (1 - c[:, 3:]) * bg
         if fast:
             # Closed-form forward and backward in numba: gradients land in the tables' buffers.

@@ -24,10 +24,11 @@ import numba
 import numpy as np
 from numba import prange
 
+from .fields import RAY_RUN
 from .octree_cpu import _sh_basis
 
 _FM = {"nsz", "arcp", "contract", "afn", "reassoc"}
-_CHUNK = 32          # rays per parallel work item (scratch arrays are per chunk)
+_CHUNK = RAY_RUN     # rays per parallel work item: one run of neighbouring pixels (scratch per chunk)
 
 
 @numba.njit(cache=True, fastmath=_FM, nogil=True)
