@@ -88,6 +88,10 @@ class FieldConfig:
     weight_eps: float = 1e-4        # colour is evaluated only where a sample's weight exceeds this
     init_alpha: float = 1e-4        # opacity of one step at the start (nearly empty)
     upsample_at: tuple[float, ...] = (0.15, 0.3, 0.45)   # fraction of the budget per new stage
+    # From this fraction of the budget on (final stage only), samples read their nearest lattice
+    # point instead of interpolating: piecewise constant, exactly what the baked tree renders,
+    # so the last steps fine-tune the tree itself (PlenOctrees' tree fine-tuning). 1: never.
+    nearest_from: float = 0.8
     seed: int = 0
 
     @property
@@ -211,6 +215,7 @@ class VoxelField:
         self.sh = RowTable(torch.cat(
             [sh.to(device).float().reshape(n, 3 * cfg.n_basis), torch.zeros(1, 3 * cfg.n_basis, device=device)]))
         self._occ_cache: torch.Tensor | None = None
+        self.nearest = False    # queries read the nearest lattice point (see FieldConfig.nearest_from)
 
     # ---- geometry -------------------------------------------------------------------------
     @property
@@ -258,6 +263,11 @@ class VoxelField:
     def _corners(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Rows (M, 8) and trilinear weights (M, 8) for lattice-space points (M, 3)."""
         u = self.to_lattice(x).clamp(0, self.res - 1)
+        if self.nearest:
+            # The nearest point alone: its row 8 times at weight 1/8 keeps the (M, 8) shapes.
+            rows = self.index[_lattice_lin(u.round().long(), self.res)].long()
+            rows = torch.where(rows < 0, torch.full_like(rows, self.n_active), rows)
+            return rows[:, None].expand(-1, 8), torch.full((x.shape[0], 8), 0.125, device=x.device)
         i0 = u.floor().clamp(max=self.res - 2)
         f = u - i0
         i0 = i0.long()
@@ -323,8 +333,10 @@ class VoxelField:
         mask = F.max_pool3d(mask.view(1, 1, *(self.res,) * 3), 3, 1, 1).view(-1) > 0
         rows = self.index[mask.nonzero()[:, 0]].long()
         rows = rows[rows >= 0]
-        return VoxelField(self.cfg, self.volume, self.res, self.device, self.active[rows],
-                          self.density.data[rows], self.sh.data[rows])
+        out = VoxelField(self.cfg, self.volume, self.res, self.device, self.active[rows],
+                         self.density.data[rows], self.sh.data[rows])
+        out.nearest = self.nearest
+        return out
 
     @torch.no_grad()
     def upsampled(self, res: int) -> "VoxelField":
@@ -351,7 +363,7 @@ class VoxelField:
     # ---- persistence ----------------------------------------------------------------------
     def state(self) -> dict:
         return {"config": asdict(self.cfg), "volume": self.volume.to_json(), "res": self.res,
-                "active": self.active.cpu(), "density": self.density.data[:-1].cpu(),
+                "nearest": self.nearest, "active": self.active.cpu(), "density": self.density.data[:-1].cpu(),
                 "sh": self.sh.data[:-1].cpu()}
 
     @classmethod
@@ -361,7 +373,9 @@ class VoxelField:
         cfg = FieldConfig(**cfgd)
         v = st["volume"]
         vol = ObjectVolume(tuple(v["center"]), float(v["radius"]), bool(v.get("estimated", False)))
-        return cls(cfg, vol, st["res"], device, st["active"], st["density"], st["sh"])
+        out = cls(cfg, vol, st["res"], device, st["active"], st["density"], st["sh"])
+        out.nearest = bool(st.get("nearest", False))
+        return out
 
 
 # ---- rays -------------------------------------------------------------------------------------
@@ -635,7 +649,7 @@ def _cpu_rays(field: VoxelField, origins: torch.Tensor, dirs: torch.Tensor, bg: 
                     field.density.data.numpy()[:, 0], field.sh.data.numpy(), field.density.grad.numpy()[:, 0],
                     field.sh.grad.numpy(), field.density.touched.numpy(), field.sh.touched.numpy(),
                     field.act_shift, field.step, field.cfg.sh_degree, field.cfg.weight_eps, 1.0 / (3 * B),
-                    target is not None, out)
+                    target is not None, field.nearest, out)
     return out
 
 
@@ -705,6 +719,8 @@ def train(state: TrainState, bank: RayBank, budget: Budget,
             state.field = f
             state.stage += 1
         fld = state.field
+        if state.stage == len(bounds) and frac >= cfg.nearest_from:
+            fld.nearest = True
         lr_scale = cfg.lr_final_ratio ** frac
         fast = fld.cpu_kernel
         if fast:

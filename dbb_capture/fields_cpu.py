@@ -46,7 +46,7 @@ def render_rays_cpu(o: np.ndarray, d: np.ndarray, jitter: np.ndarray, bg: np.nda
                     index: np.ndarray, occ: np.ndarray, res: int, dens: np.ndarray, sh: np.ndarray,
                     gdens: np.ndarray, gsh: np.ndarray, touched_d: np.ndarray, touched_sh: np.ndarray,
                     act_shift: float, step: float, degree: int, weight_eps: float, grad_scale: float,
-                    backward: bool, out: np.ndarray) -> None:
+                    backward: bool, nearest: bool, out: np.ndarray) -> None:
     """Render rays over their backgrounds; with ``backward``, also add
     ``grad_scale * d(sum of squared errors)/d(table)`` into the gradient buffers.
 
@@ -57,7 +57,8 @@ def render_rays_cpu(o: np.ndarray, d: np.ndarray, jitter: np.ndarray, bg: np.nda
     ``occ`` (res^3,) bool dilated occupancy. ``dens`` (N+1,), ``sh`` (N+1, 3*nb) float32
     tables; ``gdens``/``gsh`` their gradient buffers (added to), ``touched_d`` /
     ``touched_sh`` (N+1,) bool: rows given a gradient. ``step`` sample spacing in normalized
-    units. ``out`` (B, 5) receives the composited RGB, the opacity and the squared error
+    units. ``nearest``: a sample reads its nearest lattice point alone (piecewise constant,
+    as the baked tree renders) instead of the 8 trilinear corners. ``out`` (B, 5) receives the composited RGB, the opacity and the squared error
     summed over RGB.
     """
     B = o.shape[0]
@@ -67,6 +68,7 @@ def render_rays_cpu(o: np.ndarray, d: np.ndarray, jitter: np.ndarray, bg: np.nda
     S_max = int(2.0 / step) + 3
     sentinel = dens.shape[0] - 1
     n_chunks = (B + _CHUNK - 1) // _CHUNK
+    ncorner = 1 if nearest else 8           # corners read per sample (nearest: rows[:, 0] only)
     for ch in prange(n_chunks):
         rows = np.empty((S_max, 8), np.int32)
         wts = np.empty((S_max, 8), np.float32)
@@ -108,24 +110,32 @@ def render_rays_cpu(o: np.ndarray, d: np.ndarray, jitter: np.ndarray, bg: np.nda
                     qz = min(max(int(uz + 0.5), 0), res - 1)
                     if not occ[(qx * res + qy) * res + qz]:
                         continue
-                    ux = min(max(ux, 0.0), res - 1.0)
-                    uy = min(max(uy, 0.0), res - 1.0)
-                    uz = min(max(uz, 0.0), res - 1.0)
-                    ix = min(int(ux), res - 2)
-                    iy = min(int(uy), res - 2)
-                    iz = min(int(uz), res - 2)
-                    fx, fy, fz = ux - ix, uy - iy, uz - iz
-                    raw = 0.0
-                    for cc in range(8):
-                        cx, cy, cz = (cc >> 2) & 1, (cc >> 1) & 1, cc & 1
-                        row = index[((ix + cx) * res + iy + cy) * res + iz + cz]
+                    if nearest:
+                        row = index[(qx * res + qy) * res + qz]
                         if row < 0:
                             row = sentinel
-                        w = ((fx if cx else 1.0 - fx) * (fy if cy else 1.0 - fy)
-                             * (fz if cz else 1.0 - fz))
-                        rows[n, cc] = row
-                        wts[n, cc] = w
-                        raw += w * dens[row]
+                        rows[n, 0] = row
+                        wts[n, 0] = 1.0
+                        raw = dens[row]
+                    else:
+                        ux = min(max(ux, 0.0), res - 1.0)
+                        uy = min(max(uy, 0.0), res - 1.0)
+                        uz = min(max(uz, 0.0), res - 1.0)
+                        ix = min(int(ux), res - 2)
+                        iy = min(int(uy), res - 2)
+                        iz = min(int(uz), res - 2)
+                        fx, fy, fz = ux - ix, uy - iy, uz - iz
+                        raw = 0.0
+                        for cc in range(8):
+                            cx, cy, cz = (cc >> 2) & 1, (cc >> 1) & 1, cc & 1
+                            row = index[((ix + cx) * res + iy + cy) * res + iz + cz]
+                            if row < 0:
+                                row = sentinel
+                            w = ((fx if cx else 1.0 - fx) * (fy if cy else 1.0 - fy)
+                                 * (fz if cz else 1.0 - fz))
+                            rows[n, cc] = row
+                            wts[n, cc] = w
+                            raw += w * dens[row]
                     z = raw + act_shift
                     sig = _softplus(z)
                     a = 1.0 - math.exp(-sig * step)
@@ -136,7 +146,7 @@ def render_rays_cpu(o: np.ndarray, d: np.ndarray, jitter: np.ndarray, bg: np.nda
                     coloured[n] = wgt > weight_eps
                     if coloured[n]:
                         cf[:] = 0.0
-                        for cc in range(8):
+                        for cc in range(ncorner):
                             row = rows[n, cc]
                             w32 = wts[n, cc]
                             for q in range(C):
@@ -177,7 +187,7 @@ def render_rays_cpu(o: np.ndarray, d: np.ndarray, jitter: np.ndarray, bg: np.nda
                 gs = step * (g0 * (Tn * c0 - (C0 - A0)) + g1 * (Tn * c1 - (C1 - A1))
                              + g2 * (Tn * c2 - (C2 - A2)))
                 graw = gs * ds_s[i]
-                for cc in range(8):
+                for cc in range(ncorner):
                     row = rows[i, cc]
                     if row == sentinel:     # inactive corner: reset every step, no gradient
                         continue
@@ -191,7 +201,7 @@ def render_rays_cpu(o: np.ndarray, d: np.ndarray, jitter: np.ndarray, bg: np.nda
                         gq[q] = h0 * shb[q]
                         gq[nb + q] = h1 * shb[q]
                         gq[2 * nb + q] = h2 * shb[q]
-                    for cc in range(8):
+                    for cc in range(ncorner):
                         row = rows[i, cc]
                         if row == sentinel:
                             continue
