@@ -80,6 +80,11 @@ class RssmConfig:
     skip: bool = True              # decoder sees the context frame: its encoder maps (U-Net) and its
                                    # pixels, warped by a predicted flow and blended by a predicted mask
     max_flow: float = 0.5          # largest flow, in image half-widths (grid_sample units)
+    compose: str = "blend"         # skip path: "copy3" = per-pixel softmax over the context frame as is,
+                                   # warped, and generated (CDNA-style; static parts copied exactly);
+                                   # "blend" = one mask between warped and generated (earlier runs)
+    energy_scale: float = 0.0      # weight of the motion-energy match of the open loop (see energy_match)
+    prior_first: bool = False      # also decode frame 1 from a prior sample at h_1 (the run-time first step)
     open_loop_from: int = 1        # the training open loop starts from the filtering state of this frame:
                                    # 1 = after the posterior has seen frames 0 and 1 (see sequence_loss)
     motion_weight: float = 10.0    # extra weight of changing pixels in the reconstruction losses
@@ -93,11 +98,13 @@ class RssmConfig:
         for f in ("deter", "stoch", "hidden", "embed", "enc_depth", "dec_depth", "view_freqs"):
             if getattr(self, f) < 1:
                 raise DbbError(f"RSSM {f} must be positive")
+        if self.compose not in ("copy3", "blend"):
+            raise DbbError(f"RSSM compose must be copy3 or blend, not {self.compose!r}")
 
     @classmethod
     def from_json(cls, d: dict) -> RssmConfig:
         names = {f.name for f in fields(cls)}
-        d = {"skip": False, **d}           # runs written before the skip path had none
+        d = {"skip": False, "compose": "blend", **d}   # runs written before the skip path / copy3 had none
         return cls(**{k: v for k, v in d.items() if k in names})
 
 
@@ -179,9 +186,11 @@ class Decoder(nn.Module):
 
     Without ``skip`` the frame is generated from the features alone. With ``skip`` (the context
     frame's encoder maps ``ctx`` joined at each resolution, U-Net style) the last layer also
-    gives a flow and a mask: the frame is the context frame warped by the flow where the mask
-    is 1 and generated content where it is 0, so static and rigidly moving parts stay sharp
-    and only what the context frame cannot show is generated.
+    gives a flow and masks. ``compose="copy3"`` (SV2P/CDNA-style): a per-pixel softmax over three
+    candidates, the context frame as is, the context frame warped by the flow, and generated
+    content; it starts close to copying, so static parts are copied exactly (no resampling
+    blur) and only what moves is warped or drawn. ``"blend"``: one mask between the warped
+    context frame and generated content.
     """
 
     def __init__(self, cfg: RssmConfig):
@@ -190,13 +199,15 @@ class Decoder(nn.Module):
         self.c0 = ch[0]
         self.skip = bool(cfg.skip)
         self.max_flow = float(cfg.max_flow)
+        self.copy3 = self.skip and cfg.compose == "copy3"
         # With the skip path the decoder also sees the context frame's viewpoint: warping that
         # frame to the current view needs to know where it was seen from.
         n_pe = 4 * cfg.view_freqs * (2 if self.skip else 1)
         self.fc = nn.Sequential(nn.Linear(cfg.deter + cfg.stoch + n_pe, cfg.hidden), nn.SiLU(),
                                 nn.Linear(cfg.hidden, ch[0] * 16))
         enc = _enc_channels(cfg)[::-1] if self.skip else [0] * len(ch)      # at 4, 8, ..., S/2
-        n_out = 7 if self.skip else 4                                     # RGBA (+ mask, flow x, flow y)
+        # RGBA, then mask logit(s) (copy3: copy, warp, generate; blend: warp), then flow x, y.
+        n_out = (9 if self.copy3 else 7) if self.skip else 4
         self.ups = nn.ModuleList([nn.ConvTranspose2d(c_in + c_skip, c_out, 4, 2, 1)
                                   for c_in, c_skip, c_out in zip(ch, enc, ch[1:] + [n_out])])
         # Pixel-centre sampling grid of grid_sample (align_corners=False), (1, S, S, 2) as (x, y).
@@ -207,8 +218,8 @@ class Decoder(nn.Module):
             with torch.no_grad():
                 last = self.ups[-1]
                 last.weight[:, 4:].mul_(0.1)
-                last.bias[4] = 1.0
-                last.bias[5:] = 0.0
+                last.bias[4:] = 0.0
+                last.bias[4] = 3.0 if self.copy3 else 1.0     # copy3: ~90 % copy at the start
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kw):
         # Runs written before the skip path: ``convs`` was a Sequential (conv, SiLU, conv, ...).
@@ -235,10 +246,14 @@ class Decoder(nn.Module):
             return torch.cat([rgba[:, :3] * rgba[:, 3:4], rgba[:, 3:4]], 1)
         gen = torch.sigmoid(x[:, :4])
         gen = torch.cat([gen[:, :3] * gen[:, 3:4], gen[:, 3:4]], 1)
-        mask = torch.sigmoid(x[:, 4:5])
-        flow = torch.tanh(x[:, 5:7]) * self.max_flow
+        f0 = 7 if self.copy3 else 5
+        flow = torch.tanh(x[:, f0:f0 + 2]) * self.max_flow
         grid = self.grid.to(x.dtype) + flow.permute(0, 2, 3, 1)
         warped = F.grid_sample(ctx_pm, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+        if self.copy3:
+            m = torch.softmax(x[:, 4:7], 1)
+            return m[:, 0:1] * ctx_pm + m[:, 1:2] * warped + m[:, 2:3] * gen
+        mask = torch.sigmoid(x[:, 4:5])
         return mask * warped + (1.0 - mask) * gen
 
 
@@ -317,6 +332,18 @@ def motion_weights(x: torch.Tensor, scale: float) -> torch.Tensor:
     return 1.0 + scale * torch.cat([d[:, :1], d], 1)
 
 
+def energy_match(pred: torch.Tensor, truth: torch.Tensor, eps: float = 1e-3) -> torch.Tensor:
+    """Squared log ratio of motion energies (mean |frame change|) of each sequence, mean over the batch.
+
+    ``pred``, ``truth``: premultiplied (B, T, 4, S, S), T >= 2 consecutive frames. A sampled
+    open loop scored by squared error alone is free to move more or less than the truth (the
+    error of a wrong motion is about that of none); this term asks it to move as much.
+    """
+    e_p = (pred[:, 1:] - pred[:, :-1]).abs().flatten(1).mean(1)
+    e_t = (truth[:, 1:] - truth[:, :-1]).abs().flatten(1).mean(1)
+    return ((torch.log(e_p + eps) - torch.log(e_t + eps)) ** 2).mean()
+
+
 def _decoded(n: int, k: int, first: int, device: torch.device) -> torch.Tensor:
     """Indices of the frames to decode: all of ``first..n-1`` if at most ``k``, else ``k`` of them at
     random (sorted); a long window is decoded sparsely so its cost stays that of a short one."""
@@ -386,11 +413,24 @@ def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[to
         over.append(_kl(post_m[t].detach(), post_s[t].detach(), pm, ps).mean())
     overshoot = torch.stack(over).mean()
     oi = _decoded(T1, cfg.decode_frames, k + 1, x.device)
-    ol = _rec_loss(decode(torch.stack(ol_h, 1)[:, oi - k - 1], torch.stack(ol_z, 1)[:, oi - k - 1], oi),
-                   x[:, oi].flatten(0, 1), None if w is None else w[:, oi].flatten(0, 1))
+    dh, dz, di = torch.stack(ol_h, 1)[:, oi - k - 1], torch.stack(ol_z, 1)[:, oi - k - 1], oi
+    n0 = 0
+    if cfg.prior_first and k >= 1:
+        # The run-time step 1 exactly: z_1 sampled from the prior at h_1 (the open loop from
+        # frame k >= 1 never decodes it; untrained, it drew a random motion and lost ~3 dB to copying).
+        pm1, ps1 = model.prior_stats(hs[1])
+        z1 = pm1 + ps1 * torch.randn_like(ps1)
+        dh, dz = torch.cat([hs[1][:, None], dh], 1), torch.cat([z1[:, None], dz], 1)
+        di, n0 = torch.cat([di.new_ones(1), di]), 1
+    ol_x = decode(dh, dz, di)
+    ol = _rec_loss(ol_x, x[:, di].flatten(0, 1), None if w is None else w[:, di].flatten(0, 1))
     loss = rec + cfg.kl_scale * kl + cfg.overshoot_scale * overshoot + cfg.open_loop_scale * ol
     parts = {"loss": loss.item(), "rec": rec.item(), "open_loop": ol.item(), "kl_dyn": dyn.item(),
              "kl_rep": torch.stack(kl_rep).mean().item(), "overshoot": overshoot.item()}
+    if cfg.energy_scale > 0 and len(oi) > 1 and int(oi[-1] - oi[0]) == len(oi) - 1:   # consecutive frames only
+        en = energy_match(ol_x.view(B, len(di), *x.shape[2:])[:, n0:], x[:, oi])
+        loss = loss + cfg.energy_scale * en
+        parts["loss"], parts["energy"] = loss.item(), en.item()
     return loss, parts
 
 

@@ -291,3 +291,63 @@ def test_open_loop_starts_after_two_frames_and_motion_weights(monkeypatch):
     plain = rssm.sequence_loss(m, x, v)[1]["rec"]
     torch.manual_seed(1)
     assert rssm.sequence_loss(mw, x, v)[1]["rec"] > 2 * plain
+
+
+def test_copy3_composite_copies_the_context_frame_exactly_and_starts_near_it():
+    torch.manual_seed(5)
+    m = rssm.Rssm(replace_cfg(SMALL, compose="copy3")).eval()
+    assert m.decoder.ups[-1].out_channels == 9
+    ctx_pm = rssm.premultiply(torch.rand(2, 4, 32, 32))
+    ctx = m.encoder.features(ctx_pm)
+    feat = torch.randn(2, 16 + 16 + 2 * 16)
+    with torch.no_grad():
+        # Untrained: mostly the context frame as is (sharp, no resampling blur).
+        out = m.decoder(feat, ctx, ctx_pm)
+        assert rssm.psnr(out.numpy(), ctx_pm.numpy()) > 20
+        # Copy logit dominant: the context frame exactly, whatever the flow.
+        m.decoder.ups[-1].bias[4] = 100.0
+        m.decoder.ups[-1].bias[7:] = 5.0
+        assert torch.allclose(m.decoder(feat, ctx, ctx_pm), ctx_pm, atol=1e-5)
+    # The single-mask blend has no unwarped candidate: the same logits warp the frame.
+    torch.manual_seed(5)
+    b = rssm.Rssm(SMALL).eval()
+    with torch.no_grad():
+        b.decoder.ups[-1].bias[4] = 100.0
+        b.decoder.ups[-1].bias[5:] = 5.0
+        assert not torch.allclose(b.decoder(feat, b.encoder.features(ctx_pm), ctx_pm), ctx_pm, atol=1e-2)
+    with pytest.raises(DbbError, match="compose"):
+        replace_cfg(SMALL, compose="nope").validate()
+
+
+def test_energy_match_asks_the_open_loop_to_move_as_much_as_the_truth():
+    torch.manual_seed(0)
+    moving = torch.rand(3, 6, 4, 8, 8)
+    still = moving[:, :1].expand(-1, 6, -1, -1, -1)
+    assert rssm.energy_match(moving, moving).item() == pytest.approx(0.0, abs=1e-9)
+    pred = (still + 0.01 * torch.randn_like(still)).requires_grad_()
+    e = rssm.energy_match(pred, moving)
+    assert e.item() > 1.0
+    e.backward()                                              # descending the term moves the frames apart
+    nxt = (pred - 0.01 * pred.grad / pred.grad.abs().max()).detach()
+    d = lambda f: (f[:, 1:] - f[:, :-1]).abs().mean().item()
+    assert d(nxt) > d(pred.detach())
+    # In the loss only when asked for.
+    x, v = torch.rand(2, 11, 4, 32, 32), torch.rand(2, 11, 3) * 40
+    m = rssm.Rssm(replace_cfg(SMALL, energy_scale=1.0))
+    assert "energy" in rssm.sequence_loss(m, x, v)[1]
+    assert "energy" not in rssm.sequence_loss(rssm.Rssm(SMALL), x, v)[1]
+
+
+def test_prior_first_decodes_the_run_time_first_step_from_a_prior_sample(monkeypatch):
+    torch.manual_seed(0)
+    x, v = torch.rand(2, 11, 4, 32, 32), torch.rand(2, 11, 3) * 40
+    m = rssm.Rssm(replace_cfg(SMALL, prior_first=True, energy_scale=1.0))
+    decoded, priors = [], []
+    real_dec, real_prior = m.decoder.forward, m.prior_stats
+    monkeypatch.setattr(m.decoder, "forward", lambda f, c, p: decoded.append(len(f)) or real_dec(f, c, p))
+    monkeypatch.setattr(m, "prior_stats", lambda h: priors.append(h) or real_prior(h))
+    _, parts = rssm.sequence_loss(m, x, v)
+    assert decoded == [2 * 11, 2 * (1 + 9)]                 # frame 1 from the prior, then the open loop 2..10
+    assert "energy" in parts
+    # The prior is asked at h_1 of the filtering pass (11 filtering steps, 9 open-loop steps, then frame 1).
+    assert len(priors) == 11 + 9 + 1 and torch.equal(priors[20], priors[1])
