@@ -92,6 +92,10 @@ class FieldConfig:
     # point instead of interpolating: piecewise constant, exactly what the baked tree renders,
     # so the last steps fine-tune the tree itself (PlenOctrees' tree fine-tuning). 1: never.
     nearest_from: float = 0.8
+    # Weight of the opacity prior log(A + e) + log(1 - A + e) on each ray's opacity A (Neural
+    # Volumes' beta prior), mean over rays: pushes rays to empty or opaque, against the fringe
+    # haze that noisy mattes leave. 0: off.
+    beta_alpha: float = 0.0
     seed: int = 0
 
     @property
@@ -511,6 +515,13 @@ def render_image(field: VoxelField, origins: torch.Tensor, dirs: torch.Tensor,
 # ---- training ---------------------------------------------------------------------------------
 
 RAY_RUN = 32     # CPU training draws rays in runs of this many consecutive bank entries
+BETA_EPS = 0.01  # keeps the opacity prior's log finite at A = 0 and 1
+
+
+def opacity_prior(alpha: torch.Tensor) -> torch.Tensor:
+    """Mean of log(A + e) + log(1 - A + e) over ray opacities ``alpha`` (B,): lowest at 0 and 1."""
+    a = alpha.clamp(0, 1)
+    return (torch.log(a + BETA_EPS) + torch.log(1 - a + BETA_EPS)).mean()
 
 
 @dataclass
@@ -633,7 +644,7 @@ def tv_loss(field: VoxelField, n: int, gen: torch.Generator | None = None) -> tu
 
 
 def _cpu_rays(field: VoxelField, origins: torch.Tensor, dirs: torch.Tensor, bg: torch.Tensor,
-              target: torch.Tensor | None, jitter: torch.Tensor) -> np.ndarray:
+              target: torch.Tensor | None, jitter: torch.Tensor, beta: float = 0.0) -> np.ndarray:
     """Run the numba kernel (:mod:`.fields_cpu`) on world rays (B, 3); (B, 5) RGB, alpha, sq. error."""
     from .fields_cpu import render_rays_cpu     # numba; imported late (it imports this module)
 
@@ -649,17 +660,18 @@ def _cpu_rays(field: VoxelField, origins: torch.Tensor, dirs: torch.Tensor, bg: 
                     field.density.data.numpy()[:, 0], field.sh.data.numpy(), field.density.grad.numpy()[:, 0],
                     field.sh.grad.numpy(), field.density.touched.numpy(), field.sh.touched.numpy(),
                     field.act_shift, field.step, field.cfg.sh_degree, field.cfg.weight_eps, 1.0 / (3 * B),
-                    target is not None, field.nearest, out)
+                    target is not None, field.nearest, beta / B, out)
     return out
 
 
 def cpu_photometric_step(field: VoxelField, origins: torch.Tensor, dirs: torch.Tensor, bg: torch.Tensor,
-                         target: torch.Tensor, jitter: torch.Tensor) -> torch.Tensor:
+                         target: torch.Tensor, jitter: torch.Tensor, beta: float = 0.0) -> torch.Tensor:
     """The photometric loss of :func:`render_rays` + MSE, on CPU without autograd: renders the
     rays (B, 3) world origins / unit directions over ``bg`` (B, 3), compares with ``target``
-    (B, 3) and adds the gradient of the mean squared error into the field's gradient buffers
-    (as ``backward`` would). ``jitter`` (B,) in [0, 1) offsets the samples. Returns the MSE (0-d)."""
-    out = _cpu_rays(field, origins, dirs, bg, target, jitter)
+    (B, 3) and adds the gradient of the mean squared error, plus ``beta`` times
+    :func:`opacity_prior`, into the field's gradient buffers (as ``backward`` would).
+    ``jitter`` (B,) in [0, 1) offsets the samples. Returns the MSE (0-d)."""
+    out = _cpu_rays(field, origins, dirs, bg, target, jitter, beta)
     return torch.tensor(float(out[:, 4].sum()) / (3 * out.shape[0]))
 
 
@@ -738,13 +750,13 @@ def train(state: TrainState, bank: RayBank, budget: Budget,
         target = c[:, :3] * c[:, 3:] + (1 - c[:, 3:]) * bg
         if fast:
             # Closed-form forward and backward in numba: gradients land in the tables' buffers.
-            mse = cpu_photometric_step(fld, o, d, bg, target, torch.rand(o.shape[0], generator=gen))
+            mse = cpu_photometric_step(fld, o, d, bg, target, torch.rand(o.shape[0], generator=gen), cfg.beta_alpha)
             tvd, tvs = cpu_tv_step(fld, cfg.tv_points, gen) if cfg.tv_density > 0 or cfg.tv_sh > 0 else (0, 0)
             loss = mse + cfg.tv_density * tvd + cfg.tv_sh * tvs
         else:
             out = render_rays(fld, o, d, bg, jitter=True)
             mse = F.mse_loss(out.rgb, target)
-            loss = mse
+            loss = mse + cfg.beta_alpha * opacity_prior(out.alpha) if cfg.beta_alpha > 0 else mse
             if cfg.tv_density > 0 or cfg.tv_sh > 0:
                 tvd, tvs = tv_loss(fld, cfg.tv_points, gen)
                 loss = loss + cfg.tv_density * tvd + cfg.tv_sh * tvs

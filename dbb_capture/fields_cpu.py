@@ -24,7 +24,7 @@ import numba
 import numpy as np
 from numba import prange
 
-from .fields import RAY_RUN
+from .fields import BETA_EPS, RAY_RUN
 from .octree_cpu import _sh_basis
 
 _FM = {"nsz", "arcp", "contract", "afn", "reassoc"}
@@ -46,7 +46,7 @@ def render_rays_cpu(o: np.ndarray, d: np.ndarray, jitter: np.ndarray, bg: np.nda
                     index: np.ndarray, occ: np.ndarray, res: int, dens: np.ndarray, sh: np.ndarray,
                     gdens: np.ndarray, gsh: np.ndarray, touched_d: np.ndarray, touched_sh: np.ndarray,
                     act_shift: float, step: float, degree: int, weight_eps: float, grad_scale: float,
-                    backward: bool, nearest: bool, out: np.ndarray) -> None:
+                    backward: bool, nearest: bool, beta_scale: float, out: np.ndarray) -> None:
     """Render rays over their backgrounds; with ``backward``, also add
     ``grad_scale * d(sum of squared errors)/d(table)`` into the gradient buffers.
 
@@ -58,8 +58,10 @@ def render_rays_cpu(o: np.ndarray, d: np.ndarray, jitter: np.ndarray, bg: np.nda
     tables; ``gdens``/``gsh`` their gradient buffers (added to), ``touched_d`` /
     ``touched_sh`` (N+1,) bool: rows given a gradient. ``step`` sample spacing in normalized
     units. ``nearest``: a sample reads its nearest lattice point alone (piecewise constant,
-    as the baked tree renders) instead of the 8 trilinear corners. ``out`` (B, 5) receives the composited RGB, the opacity and the squared error
-    summed over RGB.
+    as the baked tree renders) instead of the 8 trilinear corners. ``beta_scale``: with
+    ``backward``, also add ``beta_scale * d(sum over rays of log(A + e) + log(1 - A + e))``,
+    ``A`` the ray's opacity, ``e`` = ``BETA_EPS``. ``out`` (B, 5) receives the composited
+    RGB, the opacity and the squared error summed over RGB.
     """
     B = o.shape[0]
     nb = (degree + 1) * (degree + 1)
@@ -172,6 +174,11 @@ def render_rays_cpu(o: np.ndarray, d: np.ndarray, jitter: np.ndarray, bg: np.nda
             e0, e1, e2 = C0 - target[r, 0], C1 - target[r, 1], C2 - target[r, 2]
             out[r, 4] = e0 * e0 + e1 * e1 + e2 * e2
             g0, g1, g2 = 2 * grad_scale * e0, 2 * grad_scale * e1, 2 * grad_scale * e2
+            # The opacity prior: A = 1 - exp(-sum tau), so dA/dsigma_i = step * T for every sample.
+            gb = 0.0
+            if beta_scale != 0.0:
+                A = 1.0 - T
+                gb = beta_scale * (1.0 / (A + BETA_EPS) - 1.0 / (1.0 - A + BETA_EPS)) * step * T
             # Backward. With w_i = T_i a_i and R_i the colour behind sample i (background
             # included): dC/dsigma_i = step * (T_{i+1} c_i - R_i).
             A0, A1, A2 = 0.0, 0.0, 0.0
@@ -185,7 +192,7 @@ def render_rays_cpu(o: np.ndarray, d: np.ndarray, jitter: np.ndarray, bg: np.nda
                 A2 += wgt * c2
                 Tn = T_s[i] * (1.0 - a_s[i])
                 gs = step * (g0 * (Tn * c0 - (C0 - A0)) + g1 * (Tn * c1 - (C1 - A1))
-                             + g2 * (Tn * c2 - (C2 - A2)))
+                             + g2 * (Tn * c2 - (C2 - A2))) + gb
                 graw = gs * ds_s[i]
                 for cc in range(ncorner):
                     row = rows[i, cc]

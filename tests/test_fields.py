@@ -134,8 +134,10 @@ def test_scene_mode_fits_an_opaque_rgb_view(tmp_path):
 def test_cpu_kernel_matches_autograd(nearest):
     """The numba training step renders the same colours and adds the same gradients as
     render_rays + MSE + autograd, on a random field with inactive points and degree-2 SH,
-    interpolating trilinearly or (the tree fine-tuning phase) reading the nearest point."""
-    from dbb_capture.fields import VoxelField, cpu_photometric_step, cpu_tv_step, render_rays, tv_loss
+    interpolating trilinearly or (the tree fine-tuning phase) reading the nearest point, and
+    with the opacity prior."""
+    from dbb_capture.fields import (VoxelField, cpu_photometric_step, cpu_tv_step, opacity_prior, render_rays,
+                                    tv_loss)
 
     torch.manual_seed(3)
     cfg = FieldConfig(res_start=12, res_max=12, sh_degree=2)
@@ -152,9 +154,10 @@ def test_cpu_kernel_matches_autograd(nearest):
     bg = torch.rand(B, 3)
     target = torch.rand(B, 3)
 
+    beta = 0.05 if nearest else 0.0       # the opacity prior, checked in one of the two runs
     out = render_rays(field, o, d, bg, jitter=False)
     ref = torch.nn.functional.mse_loss(out.rgb, target)
-    ref.backward()
+    (ref + beta * opacity_prior(out.alpha)).backward()
     g_dens, g_sh = field.density.grad.clone(), field.sh.grad.clone()
     field.density.grad.zero_()
     field.sh.grad.zero_()
@@ -164,7 +167,7 @@ def test_cpu_kernel_matches_autograd(nearest):
     threads = numba.get_num_threads()
     numba.set_num_threads(1)    # exact comparison: no concurrent additions into one row
     try:
-        mse = cpu_photometric_step(field, o, d, bg, target, torch.full((B,), 0.5))
+        mse = cpu_photometric_step(field, o, d, bg, target, torch.full((B,), 0.5), beta)
     finally:
         numba.set_num_threads(threads)
     assert float(mse) == pytest.approx(float(ref.detach()), rel=1e-4)
