@@ -15,6 +15,7 @@ Each part evaluates a run folder written by ``dbb-train plenoctree`` (train it f
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import sys
 import time
@@ -140,16 +141,17 @@ def bench_synth(out: Path, minutes: float) -> dict:
 
 
 def bench_capture(dataset: Path, capture: Path, run_dir: Path, minutes: float, res_max: int,
-                  train: bool) -> dict:
+                  train: bool, field: dict | None = None) -> dict:
     """Train on a preprocess dataset of a synthetic capture (crops.json) and score the tree on
     the held-out crops (the dataset's test split) against the capture's ground truth: the
     object alone rendered through each crop camera at its time, on black and on white. Also
-    against the preprocess crops themselves (their alpha is a matte, not the truth)."""
+    against the preprocess crops themselves (their alpha is a matte, not the truth).
+    ``field``: FieldConfig settings to change from the defaults."""
     from dbb_capture.fields import FieldConfig
     from dbb_capture.synth import load_ground_truth, render_object_rgba
 
     if train:
-        fc = FieldConfig(res_max=res_max, res_start=min(32, res_max))
+        fc = FieldConfig(**({"res_max": res_max, "res_start": min(32, res_max)} | (field or {})))
         train_run(dataset, run_dir, RunConfig(minutes=minutes), fc, overwrite=True)
     run = load_run(run_dir)
     ds = load_dataset(dataset)
@@ -188,6 +190,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--run", type=Path, help="capture: run folder to write (or read with --no-train)")
     ap.add_argument("--res-max", type=int, default=128, help="capture: finest lattice")
     ap.add_argument("--no-train", action="store_true", help="capture: score an existing run")
+    ap.add_argument("--field", type=json.loads, default=None,
+                    help='capture: FieldConfig settings to change, JSON, e.g. \'{"beta_alpha": 1e-3}\'')
     ap.add_argument("--repeats", type=int, default=8)
     ap.add_argument("--json", type=Path, default=None, help="also write the figures here")
     a = ap.parse_args(argv)
@@ -200,7 +204,7 @@ def main(argv: list[str] | None = None) -> int:
     elif a.part == "capture":
         if a.capture is None or a.run is None:
             ap.error("capture needs --capture and --run")
-        res = bench_capture(a.path, a.capture, a.run, a.minutes, a.res_max, not a.no_train)
+        res = bench_capture(a.path, a.capture, a.run, a.minutes, a.res_max, not a.no_train, a.field)
     else:
         res = bench_synth(a.path, a.minutes)
     return emit(res, a.json)
