@@ -103,6 +103,7 @@ def test_synthetic_calibration_recovers_camera_and_rejects_bad_view():
     assert abs(i.fx / truth.fx - 1) < 0.005 and abs(i.fy / truth.fy - 1) < 0.005
     assert abs(i.cx - truth.cx) < 3 and abs(i.cy - truth.cy) < 3
     assert abs(i.dist[0] - truth.dist[0]) < 0.02
+    assert "p1 p2" in cal.dist_terms   # this lens is decentred: the test keeps p1, p2
     assert 0.05 < cal.rms < 0.2   # the injected pixel noise, not more
     # Fewer diverse views when asked: the selection spreads over the sweep.
     few = calibrate(dets[:4] + dets[5:], board, truth.width, truth.height, max_views=5)
@@ -121,6 +122,8 @@ def test_square_pixels_unless_the_corners_say_otherwise():
     dets[3] = Detection(d.index, d.time, d.name, d.ids, off, 17, 100.0)
     cal = calibrate(dets, board, square.width, square.height)
     assert cal.square_pixels and cal.intrinsics.fx == cal.intrinsics.fy
+    # No decentring and no k3 in this lens: the corners do not call for them, so they stay 0.
+    assert cal.dist_terms == "k1 k2" and cal.intrinsics.dist[2:] == (0.0, 0.0, 0.0)
     assert abs(cal.intrinsics.fx / square.fx - 1) < 3 * cal.fx_std / square.fx + 1e-4
     assert abs(cal.intrinsics.cx - square.cx) < 1.0 and abs(cal.intrinsics.cy - square.cy) < 1.0
     assert cal.rms < 0.1   # the hidden corner does not count
