@@ -232,6 +232,7 @@ def bake(field: VoxelField, depth: int | None = None, alpha_min: float = 0.02, m
 
 BRICK = 8   # leaves per brick side in the renderer's two-level lookup
 _RAY_CHUNK = 4096   # rays per work item of the CPU renderer's threads (64 8x8 tiles)
+_EAGER_PIXELS = 2.0  # leaves narrower than this many pixels: most are met by one ray only
 _POOL: ThreadPoolExecutor | None = None
 
 
@@ -379,8 +380,10 @@ class TreeRenderer:
         skip = np.full(empty.shape, 255, np.uint8)
         if not empty.all():
             skip[...] = np.minimum(distance_transform_cdt(empty, metric="chessboard"), 255)
+        from .octree_cpu import MORTON
+
         lc = cells % BRICK
-        slot = binv.astype(np.int64) * BRICK ** 3 + (lc[:, 0] * BRICK + lc[:, 1]) * BRICK + lc[:, 2]
+        slot = binv.astype(np.int64) * BRICK ** 3 + (MORTON[lc[:, 0]] << 2 | MORTON[lc[:, 1]] << 1 | MORTON[lc[:, 2]])
         order = np.argsort(slot, kind="stable")
         n_slots = max(1, len(ub)) * BRICK ** 3
         leaf = np.zeros((n_slots, 2), np.int32)               # [sigma (float32 bits), row]
@@ -402,17 +405,19 @@ class TreeRenderer:
                 "sigmoid": self.tree.colour_activation == "sigmoid"}
 
     def _trace_np(self, origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, pixel: np.ndarray | None = None,
-                  background: tuple[float, float, float] | None | str = "premultiplied") -> np.ndarray:
+                  background: tuple[float, float, float] | None | str = "premultiplied",
+                  eager: bool = False) -> np.ndarray:
         """Colours (N, 4 or 3) float32 of rays with the numba kernel; ``dirs`` (N, 3) unit
         directions turned to world by ``rot`` (3, 3), ``origins`` (1 or N, 3) world; ray ``r``
         lands in row ``pixel[r]`` (default ``r``). ``background``: ``"premultiplied"``
         (premultiplied RGBA), ``None`` (straight RGBA) or an RGB to composite on. With one
-        origin (a camera), leaf colours are cached per frame.
+        origin (a camera), leaf colours are cached per frame; ``eager`` prefetches every met
+        leaf's SH row (see :func:`.octree_cpu.trace_rays`), which changes only the speed.
 
         Ranges of ``_RAY_CHUNK`` rays go to ``self.threads`` threads, each pulling the next
         range when it is done, so a thread that the OS pauses does not hold the frame up.
         """
-        from .octree_cpu import HALF_SCALE, trace_rays
+        from .octree_cpu import trace_rays
 
         n = dirs.shape[0]
         mode = 0 if isinstance(background, str) else (1 if background is None else 2)
@@ -436,7 +441,7 @@ class TreeRenderer:
             cache = self._colour_cache
         args = (np.ascontiguousarray(origins, np.float64), np.ascontiguousarray(dirs, np.float32),
                 np.ascontiguousarray(rot, np.float64), self.inv, self.offset, g["L"], g["lo"], g["hi"],
-                g["skip"], g["bricks"], g["nbrk"], g["leaf"], g["leaf_sigma"], g["coef"], HALF_SCALE,
+                g["skip"], g["bricks"], g["nbrk"], g["leaf"], g["leaf_sigma"], g["coef"],
                 g["degree"], g["sigmoid"], float(self.t_min), self._w_eps)
         starts = itertools.count(0, _RAY_CHUNK)
 
@@ -444,7 +449,7 @@ class TreeRenderer:
             for s in starts:                 # next() on a count is atomic under the GIL
                 if s >= n:
                     return
-                trace_rays(*args, s, min(n, s + _RAY_CHUNK), slot, frame, cache, pixel, mode, bg, out)
+                trace_rays(*args, s, min(n, s + _RAY_CHUNK), slot, frame, cache, pixel, mode, bg, out, eager)
 
         with self._lock:                     # the colour cache is per renderer
             if workers == 1:
@@ -453,6 +458,12 @@ class TreeRenderer:
                 for f in [_pool(self.threads).submit(work, i) for i in range(workers)]:
                     f.result()
         return out
+
+    def _leaf_pixels(self, c2w: np.ndarray, intr) -> float:
+        """Width in pixels of a finest leaf at the tree's centre seen from camera ``c2w``."""
+        centre = (0.5 - self.offset) / self.inv
+        dist = max(float(np.linalg.norm(c2w[:3, 3] - centre)), 1e-9)
+        return float(min(intr.fx, intr.fy) / (self.inv.max() * self.L) / dist)
 
     def _camera_dirs(self, intr) -> tuple[np.ndarray, np.ndarray]:
         """Unit camera-frame ray directions (H*W, 3) float32 of ``intr`` in 8x8-pixel tile
@@ -572,7 +583,8 @@ class TreeRenderer:
             c2w = np.asarray(c2w, np.float64)
             dirs, pixel = self._camera_dirs(intr)
             out = self._trace_np(c2w[None, :3, 3], dirs, c2w[:3, :3], pixel,
-                                 None if background is None else tuple(float(v) for v in background))
+                                 None if background is None else tuple(float(v) for v in background),
+                                 self._leaf_pixels(c2w, intr) < _EAGER_PIXELS)
             return out.reshape(intr.height, intr.width, -1)
         from .datasets import frame_rays
 

@@ -16,11 +16,19 @@ import math
 
 import numba
 import numpy as np
+from llvmlite import ir
+from numba import types
+from numba.core import cgutils
+from numba.extending import intrinsic
 
 from .fields import _C0, _C1, _C2, _C3
 
 BRICK_SHIFT = 3      # 8^3 leaves per brick (the leaf table's unit)
 _FAR = 1e30          # 1 / direction component when that component is ~0
+_MAX_HITS = 64       # colour lookups a ray defers before shading them (see trace_rays)
+# Leaves inside a brick are in Morton order, x the most significant bit of each triple: a
+# 2x2x2 block shares one cache line of the leaf table, so a ray reads ~2 leaves per line.
+MORTON = np.array([sum(((v >> b) & 1) << (3 * b) for b in range(3)) for v in range(8)], np.int64)
 
 # No nnan/ninf: exits of axis-parallel rays are huge finite numbers and must compare right.
 _FM = {"nsz", "arcp", "contract", "afn", "reassoc"}
@@ -60,30 +68,72 @@ def _exp_neg(x: float) -> float:
     return math.exp(-x)
 
 
+@intrinsic
+def _half_bits(typingctx, u):
+    """float32 value of IEEE float16 bits ``u`` (uint16): one hardware conversion (F16C)."""
+    def codegen(context, builder, signature, args):
+        return builder.fpext(builder.bitcast(args[0], ir.HalfType()), ir.FloatType())
+    return types.float32(types.uint16), codegen
+
+
+@intrinsic
+def _float_bits(typingctx, u):
+    """float32 whose IEEE bits are the int32 ``u``."""
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.FloatType())
+    return types.float32(types.int32), codegen
+
+
+@intrinsic
+def _prefetch(typingctx, arr, i):
+    """Ask the memory system for the cache line of ``arr[i, 0]`` (2-D C-ordered array) ahead
+    of its use; no effect on results."""
+    def codegen(context, builder, signature, args):
+        aryty = signature.args[0]
+        ary = context.make_array(aryty)(context, builder, args[0])
+        zero = context.get_constant(types.intp, 0)
+        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [args[1], zero], wraparound=False)
+        i8p = ir.IntType(8).as_pointer()
+        i32 = ir.IntType(32)
+        fnty = ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32])
+        fn = cgutils.get_or_insert_function(builder.module, fnty, "llvm.prefetch.p0")
+        builder.call(fn, [builder.bitcast(ptr, i8p), ir.Constant(i32, 0), ir.Constant(i32, 3), ir.Constant(i32, 1)])
+        return context.get_dummy_value()
+    return types.void(arr, types.intp), codegen
+
+
+@numba.njit(cache=True, nogil=True)
+def _half(u: int) -> float:
+    """The value of IEEE float16 bits ``u`` (a Python-callable view of :func:`_half_bits`)."""
+    return _half_bits(np.uint16(u))
+
+
 @numba.njit(cache=True, fastmath=_FM, nogil=True)
-def _half(u: int, p2: np.ndarray) -> float:
-    """The value of IEEE float16 bits ``u`` (finite); ``p2`` is :data:`HALF_SCALE`."""
-    e = (u >> 10) & 31
-    v = ((u & 1023) + (1024 if e > 0 else 0)) * p2[e]
-    return -v if u & 32768 else v
-
-
-HALF_SCALE = np.array([2.0 ** -24] + [2.0 ** (e - 25) for e in range(1, 32)])
+def _sigmoid(v: float) -> float:
+    """1 / (1 + exp(-v)) in float32 with exp as 2^n times a degree-6 polynomial of 2^f,
+    |f| <= 1/2 (relative error < 3e-7): libm's exp was a fifth of a colour's cost."""
+    x = np.float32(min(max(-v, -80.0), 80.0)) * np.float32(1.4426950408889634)
+    n = math.floor(x + np.float32(0.5))
+    f = (x - np.float32(n)) * np.float32(0.6931471805599453)
+    p = np.float32(1.0) + f * (np.float32(1.0) + f * (np.float32(0.5) + f * (np.float32(1 / 6) + f * (
+        np.float32(1 / 24) + f * (np.float32(1 / 120) + f * np.float32(1 / 720))))))
+    return np.float32(1.0) / (np.float32(1.0) + p * _float_bits(np.int32((n + 127) << 23)))
 
 
 @numba.njit(cache=True, fastmath=_FM, nogil=True)
-def _colour(coef: np.ndarray, row: int, shb: np.ndarray, nb: int, sigmoid: bool,
-            p2: np.ndarray) -> tuple[float, float, float]:
-    """RGB of data row ``row`` (float16 bits) seen along the direction whose SH basis is ``shb``."""
-    v0 = 0.0
-    v1 = 0.0
-    v2 = 0.0
+def _colour(coef: np.ndarray, row: int, shb: np.ndarray, nb: int, sigmoid: bool) -> tuple[float, float, float]:
+    """RGB of data row ``row`` (float16 bits) seen along the direction whose SH basis is
+    ``shb`` (float32), all in float32."""
+    v0 = np.float32(0.0)
+    v1 = np.float32(0.0)
+    v2 = np.float32(0.0)
     for k in range(nb):
-        v0 += _half(coef[row, k], p2) * shb[k]
-        v1 += _half(coef[row, nb + k], p2) * shb[k]
-        v2 += _half(coef[row, 2 * nb + k], p2) * shb[k]
+        b = shb[k]
+        v0 += _half_bits(coef[row, k]) * b
+        v1 += _half_bits(coef[row, nb + k]) * b
+        v2 += _half_bits(coef[row, 2 * nb + k]) * b
     if sigmoid:
-        return 1.0 / (1.0 + math.exp(-v0)), 1.0 / (1.0 + math.exp(-v1)), 1.0 / (1.0 + math.exp(-v2))
+        return _sigmoid(v0), _sigmoid(v1), _sigmoid(v2)
     return max(v0 + 0.5, 0.0), max(v1 + 0.5, 0.0), max(v2 + 0.5, 0.0)   # Plenoxels' relu(x + 0.5)
 
 
@@ -116,45 +166,90 @@ def _span_exit(ax: int, ay: int, az: int, bx: int, by: int, bz: int, size: float
 
 
 @numba.njit(cache=True, fastmath=_FM, nogil=True)
-def _box_exit(cx: int, cy: int, cz: int, size: float, px: float, py: float, pz: float,
-              hx: int, hy: int, hz: int, ix: float, iy: float, iz: float) -> float:
-    """Ray parameter where the ray P + t D leaves box ``c * size .. (c + 1) * size``;
-    ``h`` is 1 on axes the ray travels up, ``i`` is 1 / D."""
-    tx = ((cx + hx) * size - px) * ix
-    ty = ((cy + hy) * size - py) * iy
-    tz = ((cz + hz) * size - pz) * iz
-    return min(tx, min(ty, tz))
+def _shade(nh: int, hrow: np.ndarray, hcell: np.ndarray, hw: np.ndarray, coef: np.ndarray, nb: int, degree: int,
+           sigmoid: bool, frame: int, cc: np.ndarray, shb: np.ndarray, px: float, py: float, pz: float,
+           sx: float, sy: float, sz: float) -> tuple[float, float, float]:
+    """Sum of ``hw[j]`` times the colour of data row ``hrow[j]`` over the ``nh`` deferred hits
+    of one ray. With ``frame`` > 0 a leaf is coloured along the direction from the camera
+    (lattice point ``p``) to the centre of its cell ``hcell[j]`` (packed 10 bits per axis), the
+    lattice to world scale being ``s`` per axis, once per frame through the cache ``cc``
+    (K, 4): RGB, valid where the 4th value equals ``frame``. Otherwise ``shb`` already holds
+    the ray's SH basis. Rows missing from the cache are prefetched together first, so their
+    memory latencies overlap instead of adding up."""
+    if frame > 0:
+        for j in range(nh):
+            if cc[hrow[j], 3] != frame:
+                _prefetch(coef, hrow[j])
+    r = 0.0
+    g = 0.0
+    b = 0.0
+    for j in range(nh):
+        row = hrow[j]
+        if frame > 0:
+            if cc[row, 3] != frame:
+                c = hcell[j]
+                ex = ((c >> 20) + 0.5 - px) * sx
+                ey = (((c >> 10) & 1023) + 0.5 - py) * sy
+                ez = ((c & 1023) + 0.5 - pz) * sz
+                en = 1.0 / max(math.sqrt(ex * ex + ey * ey + ez * ez), 1e-12)
+                _sh_basis(ex * en, ey * en, ez * en, degree, shb)
+                v0, v1, v2 = _colour(coef, row, shb, nb, sigmoid)
+                cc[row, 0] = v0
+                cc[row, 1] = v1
+                cc[row, 2] = v2
+                cc[row, 3] = frame
+            # Always the stored (float32) colour: a pixel must not depend on which ray or
+            # thread met the leaf first.
+            v0, v1, v2 = cc[row, 0], cc[row, 1], cc[row, 2]
+        else:
+            v0, v1, v2 = _colour(coef, row, shb, nb, sigmoid)
+        w = hw[j]
+        r += w * v0
+        g += w * v1
+        b += w * v2
+    return r, g, b
 
 
 @numba.njit(cache=True, fastmath=_FM, nogil=True)
 def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.ndarray, offset: np.ndarray,
                L: int, lo: np.ndarray, hi: np.ndarray, skip: np.ndarray, bricks: np.ndarray, nbrk: int,
-               leaf_row: np.ndarray, leaf_sigma: np.ndarray, coef: np.ndarray, p2: np.ndarray,
+               leaf_row: np.ndarray, leaf_sigma: np.ndarray, coef: np.ndarray,
                degree: int, sigmoid: bool, t_min: float, w_eps: float, start: int, end: int, slot: int,
                frame: int, cache: np.ndarray, pixel: np.ndarray, mode: int, bg: np.ndarray,
-               out: np.ndarray) -> None:
+               out: np.ndarray, eager: bool) -> None:
     """Colour of rays ``start`` to ``end`` into row ``pixel[r]`` of ``out`` (see :func:`_write`
     for ``mode`` and ``bg``). Releases the GIL: Python threads run disjoint ranges side by side.
 
     ``origins`` (1 or N, 3) world; ``dirs`` (N, 3) unit, turned to world by ``rot`` (3, 3);
-    the tree maps world x to lattice ``(offset + x * inv) * L``. ``lo``/``hi`` (3,) bound the
-    occupied leaves (lattice units). ``skip`` (nbrk^3,) uint8 is the chessboard distance, in
-    bricks, of each 8^3-leaf brick to the nearest occupied one (0 occupied), ``bricks``
-    (nbrk^3,) int32 the brick of each 8^3-leaf brick (-1 empty);
-    ``leaf_row`` (n_bricks * 512, 2) int32 holds per leaf its density (float32 bits, read
+    the tree maps world x to lattice ``(offset + x * inv) * L`` (L <= 1024). ``lo``/``hi`` (3,)
+    bound the occupied leaves (lattice units). ``skip`` (nbrk^3,) uint8 is the chessboard
+    distance, in bricks, of each 8^3-leaf brick to the nearest occupied one (0 occupied),
+    ``bricks`` (nbrk^3,) int32 the brick of each 8^3-leaf brick (-1 empty);
+    ``leaf_row`` (n_bricks * 512, 2) int32 holds per leaf (brick * 512 + Morton index, see
+    :data:`MORTON`) its density (float32 bits, read
     through the float32 view ``leaf_sigma`` of the same memory; 0 = empty) and its data row,
     so one cache line serves both.
     ``coef`` (K, >= 3 * B) uint16 the float16 bits of each row's SH coefficients (rows
-    padded to whole cache lines: one miss fetches a leaf's colour), ``p2`` :data:`HALF_SCALE`.
+    padded to whole cache lines: one miss fetches a leaf's colour).
     Rays stop once transmittance < ``t_min``; colour is evaluated only where the sample
     weight exceeds ``w_eps``.
     ``frame`` > 0 (only with one origin, below 2^24) turns on the leaf colour cache
     ``cache[slot]`` (K, 4) float32: RGB, valid where the 4th value equals ``frame``; each
-    thread owns a slot.
+    thread owns a slot. ``eager`` also prefetches the SH rows of cached leaves as the walk
+    meets them: worth it when most leaves are met by one ray only (leaves about a pixel wide).
+
+    The walk only records which rows a ray needs and with what weight (prefetching their
+    cache entries), then :func:`_shade` colours them: colour lookups are scattered over tens
+    of MB, and a lookup made where the walk finds it stalls the walk for a memory latency.
     """
     nb = (degree + 1) * (degree + 1)
     rsz = float(1 << BRICK_SHIFT)
-    shb = np.zeros(16)
+    shb = np.zeros(16, np.float32)
+    hrow = np.empty(_MAX_HITS, np.int64)
+    hcell = np.empty(_MAX_HITS, np.int64)
+    hw = np.empty(_MAX_HITS, np.float64)
+    cc = cache[slot]
+    wsx, wsy, wsz = 1.0 / (inv[0] * L), 1.0 / (inv[1] * L), 1.0 / (inv[2] * L)   # world per leaf
     for r in range(start, end):
         oi = r if origins.shape[0] > 1 else 0
         wx = rot[0, 0] * dirs[r, 0] + rot[0, 1] * dirs[r, 1] + rot[0, 2] * dirs[r, 2]
@@ -169,6 +264,7 @@ def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.n
         iz = 1.0 / dz if abs(dz) > 1e-12 else _FAR
         hx, hy, hz = int(dx >= 0), int(dy >= 0), int(dz >= 0)
         sx, sy, sz = abs(ix), abs(iy), abs(iz)       # t per leaf along each axis
+        stx, sty, stz = 2 * hx - 1, 2 * hy - 1, 2 * hz - 1
         # Clip to the occupied leaves' box.
         ax, bx = (lo[0] - px) * ix, (hi[0] - px) * ix
         ay, by = (lo[1] - py) * iy, (hi[1] - py) * iy
@@ -178,12 +274,14 @@ def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.n
         if not t < t_end:
             _write(out, pixel[r], mode, bg, 0.0, 0.0, 0.0, 0.0)
             continue
+        if frame == 0:
+            _sh_basis(wx, wy, wz, degree, shb)
         eps = 1e-4 / math.sqrt(dx * dx + dy * dy + dz * dz)   # a 1e-4 leaf nudge
         T = 1.0
         cr = 0.0
         cg = 0.0
         cb = 0.0
-        basis_ready = False
+        nh = 0
         w_sum = 0.0
         done = False
         while t < t_end and not done:
@@ -202,13 +300,14 @@ def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.n
                 continue
             # Occupied brick: walk its leaves incrementally (Amanatides-Woo).
             base = brick << 9
+            corner = ((kx << 20) | (ky << 10) | kz) << BRICK_SHIFT
             lx, ly, lz = cx & 7, cy & 7, cz & 7
             mx = ((cx + hx) - px) * ix
             my = ((cy + hy) - py) * iy
             mz = ((cz + hz) - pz) * iz
             while True:
                 tn = min(mx, min(my, mz))
-                local = base | (lx << 6) | (ly << 3) | lz
+                local = base | (MORTON[lx] << 2) | (MORTON[ly] << 1) | MORTON[lz]
                 sg = leaf_sigma[local, 0]
                 if sg > 0:
                     a = 1.0 - _exp_neg(sg * (min(tn, t_end) - t))
@@ -216,34 +315,21 @@ def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.n
                     if w > w_eps:
                         row = leaf_row[local, 1]
                         if frame > 0:
-                            # One camera centre: colour a leaf once per frame, along
-                            # the direction to its centre (within a leaf's angle of
-                            # every ray through it), and reuse it for later rays.
-                            if cache[slot, row, 3] == frame:
-                                v0, v1, v2 = cache[slot, row, 0], cache[slot, row, 1], cache[slot, row, 2]
-                            else:
-                                ex = ((kx << 3) + lx + 0.5 - px) / (inv[0] * L)
-                                ey = ((ky << 3) + ly + 0.5 - py) / (inv[1] * L)
-                                ez = ((kz << 3) + lz + 0.5 - pz) / (inv[2] * L)
-                                en = 1.0 / max(math.sqrt(ex * ex + ey * ey + ez * ez), 1e-12)
-                                _sh_basis(ex * en, ey * en, ez * en, degree, shb)
-                                v0, v1, v2 = _colour(coef, row, shb, nb, sigmoid, p2)
-                                cache[slot, row, 0] = v0
-                                cache[slot, row, 1] = v1
-                                cache[slot, row, 2] = v2
-                                cache[slot, row, 3] = frame
-                                # Use the stored (float32) colour, as later hits will: a pixel
-                                # must not depend on which thread met the leaf first.
-                                v0, v1, v2 = cache[slot, row, 0], cache[slot, row, 1], cache[slot, row, 2]
-                        else:
-                            if not basis_ready:
-                                _sh_basis(wx, wy, wz, degree, shb)
-                                basis_ready = True
-                            v0, v1, v2 = _colour(coef, row, shb, nb, sigmoid, p2)
-                        cr += w * v0
-                        cg += w * v1
-                        cb += w * v2
+                            _prefetch(cc, row)
+                        if frame == 0 or eager:
+                            _prefetch(coef, row)
+                        hrow[nh] = row
+                        hcell[nh] = corner + ((lx << 20) | (ly << 10) | lz)
+                        hw[nh] = w
+                        nh += 1
                         w_sum += w
+                        if nh == _MAX_HITS:
+                            vr, vg, vb = _shade(nh, hrow, hcell, hw, coef, nb, degree, sigmoid, frame, cc, shb,
+                                                px, py, pz, wsx, wsy, wsz)
+                            cr += vr
+                            cg += vg
+                            cb += vb
+                            nh = 0
                     T *= 1.0 - a
                     if T < t_min:
                         done = True
@@ -251,21 +337,25 @@ def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.n
                 t = max(tn, t)
                 if t >= t_end:
                     break
-                if mx <= my and mx <= mz:
-                    lx += 2 * hx - 1
-                    mx += sx
-                    if lx < 0 or lx > 7:
-                        break
-                elif my <= mz:
-                    ly += 2 * hy - 1
-                    my += sy
-                    if ly < 0 or ly > 7:
-                        break
-                else:
-                    lz += 2 * hz - 1
-                    mz += sz
-                    if lz < 0 or lz > 7:
-                        break
+                # Step along the axis whose boundary comes first, without branches: which
+                # axis that is changes from leaf to leaf and would defeat branch prediction.
+                ux = int(mx <= my) & int(mx <= mz)
+                uy = (1 - ux) & int(my <= mz)
+                uz = 1 - ux - uy
+                lx += ux * stx
+                ly += uy * sty
+                lz += uz * stz
+                mx += ux * sx
+                my += uy * sy
+                mz += uz * sz
+                if (lx | ly | lz) & ~7:          # left the brick (-1 or 8 on one axis)
+                    break
+        if nh:
+            vr, vg, vb = _shade(nh, hrow, hcell, hw, coef, nb, degree, sigmoid, frame, cc, shb,
+                                px, py, pz, wsx, wsy, wsz)
+            cr += vr
+            cg += vg
+            cb += vb
         # The weight of skipped samples goes to the evaluated ones in proportion.
         scale = (1.0 - T) / w_sum if w_sum > 0 else 0.0
         _write(out, pixel[r], mode, bg, cr * scale, cg * scale, cb * scale, 1.0 - T)

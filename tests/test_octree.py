@@ -199,13 +199,22 @@ def test_cpu_renderer_matches_the_torch_renderer_on_a_trained_tree(baked):
 
 
 def test_float16_decoding_is_exact():
-    from dbb_capture.octree_cpu import HALF_SCALE, _half
+    from dbb_capture.octree_cpu import _half
 
     bits = np.arange(1 << 16, dtype=np.uint16)
     want = bits.view(np.float16).astype(np.float64)
     finite = np.isfinite(want)
-    got = np.array([_half(int(u), HALF_SCALE) for u in bits[finite][::7]])
+    got = np.array([_half(int(u)) for u in bits[finite][::7]])
     np.testing.assert_array_equal(got, want[finite][::7])
+
+
+def test_fast_sigmoid_matches_numpy():
+    from dbb_capture.octree_cpu import _sigmoid
+
+    v = np.linspace(-120, 120, 4001)
+    got = np.array([_sigmoid(x) for x in v])
+    want = 1 / (1 + np.exp(-v))
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-7)       # float32 colours
 
 
 def test_colour_cache_does_not_leak_between_frames(baked):
