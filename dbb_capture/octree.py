@@ -349,7 +349,7 @@ class TreeRenderer:
         self.nb = nb
         self._grid = grid
         self._cam_cache: tuple = (None, None)
-        self._colour_cache: np.ndarray | None = None   # per-thread leaf RGB + frame stamp
+        self._colour_cache: np.ndarray | None = None   # packed leaf RGB + frame stamp, shared
         self._frame = 0
         if backend == "numba":
             self._np = self._cpu_tables(cells, rows, ub, binv)
@@ -417,7 +417,7 @@ class TreeRenderer:
         Ranges of ``_RAY_CHUNK`` rays go to ``self.threads`` threads, each pulling the next
         range when it is done, so a thread that the OS pauses does not hold the frame up.
         """
-        from .octree_cpu import trace_rays
+        from .octree_cpu import FRAME_MAX, trace_rays
 
         n = dirs.shape[0]
         mode = 0 if isinstance(background, str) else (1 if background is None else 2)
@@ -427,14 +427,13 @@ class TreeRenderer:
         g = self._np
         workers = max(1, min(self.threads, -(-n // _RAY_CHUNK)))
         frame = 0
-        cache = np.zeros((workers, 1, 4), np.float32)
+        cache = np.zeros((1, 1), np.int64)
         if origins.shape[0] == 1:
-            k = g["coef"].shape[0]
-            if self._colour_cache is None or self._colour_cache.shape[0] < workers:
-                self._colour_cache = np.zeros((workers, k, 4), np.float32)
+            if self._colour_cache is None:
+                self._colour_cache = np.zeros((g["coef"].shape[0], 1), np.int64)
                 self._frame = 0
-            if self._frame >= 2 ** 24 - 1:               # stamps are float32: exact below 2^24
-                self._colour_cache[..., 3] = 0
+            if self._frame >= FRAME_MAX:                 # stamps are 16 bits
+                self._colour_cache[:] = 0
                 self._frame = 0
             self._frame += 1
             frame = self._frame
@@ -445,17 +444,17 @@ class TreeRenderer:
                 g["degree"], g["sigmoid"], float(self.t_min), self._w_eps)
         starts = itertools.count(0, _RAY_CHUNK)
 
-        def work(slot: int) -> None:
+        def work() -> None:
             for s in starts:                 # next() on a count is atomic under the GIL
                 if s >= n:
                     return
-                trace_rays(*args, s, min(n, s + _RAY_CHUNK), slot, frame, cache, pixel, mode, bg, out, eager)
+                trace_rays(*args, s, min(n, s + _RAY_CHUNK), frame, cache, pixel, mode, bg, out, eager)
 
         with self._lock:                     # the colour cache is per renderer
             if workers == 1:
-                work(0)
+                work()
             else:
-                for f in [_pool(self.threads).submit(work, i) for i in range(workers)]:
+                for f in [_pool(self.threads).submit(work) for _ in range(workers)]:
                     f.result()
         return out
 

@@ -165,6 +165,21 @@ def _span_exit(ax: int, ay: int, az: int, bx: int, by: int, bz: int, size: float
     return min(tx, min(ty, tz))
 
 
+_UNQ = 1.0 / 16384      # cached colours are 16-bit fixed point over [0, 4)
+FRAME_MAX = 65535       # frame stamps are 16 bits
+
+
+@numba.njit(cache=True, fastmath=_FM, nogil=True)
+def _pack(v0: float, v1: float, v2: float, frame: int) -> int:
+    """One colour cache entry: RGB as 16-bit fixed point (step 1/16384, 96 dB) and the frame
+    stamp in the top 16 bits. One 8-byte store and load: threads share the cache without
+    locks (a racing thread writes the same value, and never half of one)."""
+    q0 = min(int(v0 * 16384.0 + 0.5), 65535)
+    q1 = min(int(v1 * 16384.0 + 0.5), 65535)
+    q2 = min(int(v2 * 16384.0 + 0.5), 65535)
+    return q0 | (q1 << 16) | (q2 << 32) | (frame << 48)
+
+
 @numba.njit(cache=True, fastmath=_FM, nogil=True)
 def _shade(nh: int, hrow: np.ndarray, hcell: np.ndarray, hw: np.ndarray, coef: np.ndarray, nb: int, degree: int,
            sigmoid: bool, frame: int, cc: np.ndarray, shb: np.ndarray, px: float, py: float, pz: float,
@@ -173,12 +188,12 @@ def _shade(nh: int, hrow: np.ndarray, hcell: np.ndarray, hw: np.ndarray, coef: n
     of one ray. With ``frame`` > 0 a leaf is coloured along the direction from the camera
     (lattice point ``p``) to the centre of its cell ``hcell[j]`` (packed 10 bits per axis), the
     lattice to world scale being ``s`` per axis, once per frame through the cache ``cc``
-    (K, 4): RGB, valid where the 4th value equals ``frame``. Otherwise ``shb`` already holds
-    the ray's SH basis. Rows missing from the cache are prefetched together first, so their
-    memory latencies overlap instead of adding up."""
+    (see :func:`_pack`). Otherwise ``shb`` already holds the ray's SH basis. Rows missing
+    from the cache are prefetched together first, so their memory latencies overlap instead
+    of adding up."""
     if frame > 0:
         for j in range(nh):
-            if cc[hrow[j], 3] != frame:
+            if cc[hrow[j], 0] >> 48 != frame:
                 _prefetch(coef, hrow[j])
     r = 0.0
     g = 0.0
@@ -186,7 +201,8 @@ def _shade(nh: int, hrow: np.ndarray, hcell: np.ndarray, hw: np.ndarray, coef: n
     for j in range(nh):
         row = hrow[j]
         if frame > 0:
-            if cc[row, 3] != frame:
+            e = cc[row, 0]
+            if e >> 48 != frame:
                 c = hcell[j]
                 ex = ((c >> 20) + 0.5 - px) * sx
                 ey = (((c >> 10) & 1023) + 0.5 - py) * sy
@@ -194,13 +210,13 @@ def _shade(nh: int, hrow: np.ndarray, hcell: np.ndarray, hw: np.ndarray, coef: n
                 en = 1.0 / max(math.sqrt(ex * ex + ey * ey + ez * ez), 1e-12)
                 _sh_basis(ex * en, ey * en, ez * en, degree, shb)
                 v0, v1, v2 = _colour(coef, row, shb, nb, sigmoid)
-                cc[row, 0] = v0
-                cc[row, 1] = v1
-                cc[row, 2] = v2
-                cc[row, 3] = frame
-            # Always the stored (float32) colour: a pixel must not depend on which ray or
-            # thread met the leaf first.
-            v0, v1, v2 = cc[row, 0], cc[row, 1], cc[row, 2]
+                e = _pack(v0, v1, v2, frame)
+                cc[row, 0] = e
+            # Always the stored colour: a pixel must not depend on which ray or thread met
+            # the leaf first.
+            v0 = (e & 65535) * _UNQ
+            v1 = ((e >> 16) & 65535) * _UNQ
+            v2 = ((e >> 32) & 65535) * _UNQ
         else:
             v0, v1, v2 = _colour(coef, row, shb, nb, sigmoid)
         w = hw[j]
@@ -214,7 +230,7 @@ def _shade(nh: int, hrow: np.ndarray, hcell: np.ndarray, hw: np.ndarray, coef: n
 def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.ndarray, offset: np.ndarray,
                L: int, lo: np.ndarray, hi: np.ndarray, skip: np.ndarray, bricks: np.ndarray, nbrk: int,
                leaf_row: np.ndarray, leaf_sigma: np.ndarray, coef: np.ndarray,
-               degree: int, sigmoid: bool, t_min: float, w_eps: float, start: int, end: int, slot: int,
+               degree: int, sigmoid: bool, t_min: float, w_eps: float, start: int, end: int,
                frame: int, cache: np.ndarray, pixel: np.ndarray, mode: int, bg: np.ndarray,
                out: np.ndarray, eager: bool) -> None:
     """Colour of rays ``start`` to ``end`` into row ``pixel[r]`` of ``out`` (see :func:`_write`
@@ -233,9 +249,9 @@ def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.n
     padded to whole cache lines: one miss fetches a leaf's colour).
     Rays stop once transmittance < ``t_min``; colour is evaluated only where the sample
     weight exceeds ``w_eps``.
-    ``frame`` > 0 (only with one origin, below 2^24) turns on the leaf colour cache
-    ``cache[slot]`` (K, 4) float32: RGB, valid where the 4th value equals ``frame``; each
-    thread owns a slot. ``eager`` also prefetches the SH rows of cached leaves as the walk
+    ``frame`` in 1 .. :data:`FRAME_MAX` (only with one origin) turns on the leaf colour cache
+    ``cache`` (K, 1) int64 of :func:`_pack` entries, valid where stamped ``frame``, which the
+    threads share. ``eager`` also prefetches the SH rows of cached leaves as the walk
     meets them: worth it when most leaves are met by one ray only (leaves about a pixel wide).
 
     The walk only records which rows a ray needs and with what weight (prefetching their
@@ -248,7 +264,7 @@ def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.n
     hrow = np.empty(_MAX_HITS, np.int64)
     hcell = np.empty(_MAX_HITS, np.int64)
     hw = np.empty(_MAX_HITS, np.float64)
-    cc = cache[slot]
+    cc = cache
     wsx, wsy, wsz = 1.0 / (inv[0] * L), 1.0 / (inv[1] * L), 1.0 / (inv[2] * L)   # world per leaf
     for r in range(start, end):
         oi = r if origins.shape[0] > 1 else 0

@@ -227,6 +227,22 @@ def test_colour_cache_does_not_leak_between_frames(baked):
     np.testing.assert_array_equal(again, fresh)
 
 
+def test_threads_and_prefetch_mode_do_not_change_pixels(baked, monkeypatch):
+    """Threads share one colour cache and the eager prefetch only reorders memory traffic:
+    a frame is the same bit for bit with one thread or several, eager or not."""
+    import dbb_capture.octree as octree
+    from dbb_capture.datasets import scaled_intrinsics
+
+    frames, vol, state, tree, _ = baked
+    intr = scaled_intrinsics(frames[2].intr, 24 / 160)        # 160x160: several work items
+    monkeypatch.setattr(octree, "_EAGER_PIXELS", 0.0)
+    one = TreeRenderer(tree, threads=1).render(frames[2].c2w, intr)
+    monkeypatch.setattr(octree, "_EAGER_PIXELS", 1e9)
+    many = TreeRenderer(tree, threads=3).render(frames[2].c2w, intr)
+    assert one.shape == (160, 160, 4) and float(one[..., 3].mean()) > 0.05
+    np.testing.assert_array_equal(one, many)
+
+
 _FORKED: dict = {}
 
 
