@@ -173,6 +173,17 @@ def split_by_time(times: np.ndarray, test_fraction: float = 0.2) -> np.ndarray:
     return np.where(times > t_cut if test_fraction > 0 else np.zeros(len(times), bool), "test", "train")
 
 
+def follows_previous(times: np.ndarray, max_gap_factor: float = 1.5) -> np.ndarray:
+    """(N,) bool: frame i directly follows frame i-1 (a time step at most ``max_gap_factor`` times
+    the median step; a frame skipped for blur or for no board is a gap). Frame 0 follows nothing."""
+    times = np.asarray(times, float)
+    out = np.zeros(len(times), bool)
+    if len(times) > 1:
+        step = np.diff(times)
+        out[1:] = step <= max_gap_factor * float(np.median(step))
+    return out
+
+
 def sequence_windows(times: np.ndarray, splits: np.ndarray, length: int = 11,
                      max_gap_factor: float = 1.5, stride: int = 1) -> list[tuple[int, str]]:
     """Start indices of windows of ``length`` consecutive frames (1 context + length-1 predicted).
@@ -244,13 +255,17 @@ def crops_json(records: list[CropRecord], center: np.ndarray, radius: float, up:
 @dataclass(frozen=True)
 class ObjectCrop:
     """What one frame gives: the crop camera, the observed crop (S, S, 3), the predicted
-    background there (S, S, 3) and the straight RGBA cut-out (S, S, 4), all uint8."""
+    background there (S, S, 3) and the straight RGBA cut-out (S, S, 4), all uint8; for the
+    matte's second pass also where the prediction is a guess (S, S) bool and, for a crop past
+    the frame's border, the part inside the frame (S, S) uint8 (255: inside)."""
 
     cam: CropCamera
     observed: np.ndarray
     predicted: np.ndarray
     rgba: np.ndarray
     touches_border: bool
+    guessed: np.ndarray | None = None
+    inside: np.ndarray | None = None
 
 
 def object_crop(image: np.ndarray, src: Intrinsics, c2w: np.ndarray, center: np.ndarray, radius: float,
@@ -268,12 +283,35 @@ def object_crop(image: np.ndarray, src: Intrinsics, c2w: np.ndarray, center: np.
     cam = crop_camera(c2w, src, center, radius, up, size, fill)
     observed, touched = cut_crop(image, cam, src, c2w)
     predicted = predict(cam)
-    rgba = matte(observed, predicted, sphere_disc(size, fill, mcfg.disc_margin), mcfg,
-                 guessed(cam) if guessed is not None else None)
+    guess = guessed(cam) if guessed is not None else None
+    rgba = matte(observed, predicted, sphere_disc(size, fill, mcfg.disc_margin), mcfg, guess)
+    inside = None
     if touched:
-        inside, _ = cut_crop(np.full(image.shape[:2], 255, np.uint8), cam, src, c2w)
-        rgba[..., 3] = np.minimum(rgba[..., 3], inside.reshape(size, size))
-    return ObjectCrop(cam, observed, predicted, rgba, touched)
+        inside = cut_crop(np.full(image.shape[:2], 255, np.uint8), cam, src, c2w)[0].reshape(size, size)
+        rgba[..., 3] = np.minimum(rgba[..., 3], inside)
+    return ObjectCrop(cam, observed, predicted, rgba, touched, guess, inside)
+
+
+def rematte(oc: ObjectCrop, fill: float, capture, matte_cfg=None) -> np.ndarray:
+    """The matte's second pass over one crop: alpha (S, S) uint8 with the capture's statistics
+    (``capture``: :class:`~dbb_capture.matte.CaptureMatte`), clipped to the frame like the first."""
+    from .matte import MatteConfig, matte, sphere_disc
+
+    mcfg = matte_cfg or MatteConfig()
+    disc = sphere_disc(oc.observed.shape[0], fill, mcfg.disc_margin)
+    alpha = matte(oc.observed, oc.predicted, disc, mcfg, oc.guessed, capture)[..., 3]
+    return np.minimum(alpha, oc.inside) if oc.inside is not None else alpha
+
+
+def voted_rgba(oc: ObjectCrop, alphas: list[np.ndarray]) -> np.ndarray:
+    """Straight RGBA (S, S, 4) uint8 of ``oc`` with the temporal median of its own and its
+    neighbouring frames' second-pass alphas (each (S, S) uint8)."""
+    from .matte import straight_rgba, temporal_median
+
+    alpha = temporal_median(alphas)
+    if oc.inside is not None:
+        alpha = np.minimum(alpha, oc.inside)
+    return straight_rgba(oc.observed, oc.predicted, alpha.astype(np.float32) / 255.0)
 
 
 def alpha_in_frame(alpha: np.ndarray, cam: CropCamera, intr: Intrinsics, c2w: np.ndarray) -> np.ndarray:

@@ -19,6 +19,14 @@ that no view saw past it), a difference from it is no evidence of the object: th
 stays object only if the object's colours explain it better than the room's (colour
 histograms of this crop: the room from where the decision is sure, the object from the
 decided pixels whose colour the room does not show).
+
+A second pass over the whole capture (:class:`CaptureMatte`, learnt from the first mattes) adds
+what one crop cannot know: the capture's usual noise level (a crop whose room is partly
+predicted badly measures too much noise and loses weak object parts) and the object's colours
+from every view (a part coloured like the table, seen only against the guessed table in this
+crop, is seen against sound room elsewhere). A temporal median of neighbouring frames' alphas
+then removes flicker (the crop follows the object, so its parts stay at nearly the same crop
+pixels from frame to frame).
 """
 
 from __future__ import annotations
@@ -126,26 +134,37 @@ def _edge_alpha(observed: np.ndarray, predicted: np.ndarray, core: np.ndarray, e
     return alpha
 
 
-def colour_histogram(pixels: np.ndarray, bins: int) -> np.ndarray:
-    """Normalized, smoothed colour histogram (bins, bins, bins) float64 of RGB pixels (N, 3) uint8."""
+def colour_counts(pixels: np.ndarray, bins: int) -> np.ndarray:
+    """Colour histogram counts (bins, bins, bins) float64 of RGB pixels (N, 3) uint8."""
+    q = pixels.astype(np.int32) * bins // 256
+    flat = (q[:, 0] * bins + q[:, 1]) * bins + q[:, 2]
+    return np.bincount(flat, minlength=bins ** 3).astype(np.float64).reshape((bins,) * 3)
+
+
+def normalized_histogram(counts: np.ndarray) -> np.ndarray:
+    """Smoothed, normalized colour histogram (bins,)*3 float64 from counts of the same shape."""
     from scipy.ndimage import gaussian_filter
 
-    q = pixels.astype(np.int32) * bins // 256
-    h = np.zeros((bins,) * 3, np.float64)
-    np.add.at(h, (q[:, 0], q[:, 1], q[:, 2]), 1.0)
-    h = gaussian_filter(h, 1.0, mode="constant")   # colours next to seen ones are likely too
+    h = gaussian_filter(counts, 1.0, mode="constant")   # colours next to seen ones are likely too
     return h / max(h.sum(), 1e-12)
 
 
+def colour_histogram(pixels: np.ndarray, bins: int) -> np.ndarray:
+    """Normalized, smoothed colour histogram (bins, bins, bins) float64 of RGB pixels (N, 3) uint8."""
+    return normalized_histogram(colour_counts(pixels, bins))
+
+
 def room_by_colour(observed: np.ndarray, candidates: np.ndarray, room: np.ndarray, core: np.ndarray,
-                   bins: int = 32, ratio: float = 3.0) -> np.ndarray:
+                   bins: int = 32, ratio: float = 3.0, object_hist: np.ndarray | None = None) -> np.ndarray:
     """Pixels of ``candidates`` (H, W) bool whose colour the room explains ``ratio`` times better
     than the object does.
 
     ``room``, ``core`` (H, W) bool: pixels surely room and pixels decided object. The object's
     colours come from the core pixels outside ``candidates`` (decided where the evidence is
     sound) and those whose colour is rare in the room (the 5% least likely room colour or
-    rarer), so room wrongly in the core does not teach the object model.
+    rarer), so room wrongly in the core does not teach the object model. ``object_hist``
+    (bins,)*3: the object's colours over the whole capture (:func:`normalized_histogram`); a
+    colour counts as the object's if either model says so.
     Returns (H, W) bool (all False when either side has too few pixels to judge).
     """
     none = np.zeros(candidates.shape, bool)
@@ -157,24 +176,71 @@ def room_by_colour(observed: np.ndarray, candidates: np.ndarray, room: np.ndarra
     if seed.sum() < 10:
         return none
     po = colour_histogram(observed[seed], bins)[q[..., 0], q[..., 1], q[..., 2]]
+    if object_hist is not None and object_hist.shape == (bins,) * 3:
+        po = np.maximum(po, object_hist[q[..., 0], q[..., 1], q[..., 2]])
     return candidates & (pr > ratio * po)
 
 
+def _noise(d: np.ndarray, disc: np.ndarray) -> float:
+    """Noise level of the colour distance (0..1 RGB scale) from where no object can be.
+
+    Robust to a room part the prediction gets wrong (a far wall seen edge-on): the lower
+    quartile, scaled to the median it has on clean crops. Without enough room outside the disc
+    (a fixed window), the whole crop stands in: the room is most of it.
+    """
+    outside = ~disc
+    ring = d[outside] if outside.sum() > 50 else d
+    return 1.6 * float(np.percentile(ring, 25)) / 0.6745
+
+
+def noise_level(observed: np.ndarray, predicted: np.ndarray, disc: np.ndarray,
+                cfg: MatteConfig = MatteConfig()) -> float:
+    """The noise level :func:`matte` measures in one crop (observed, predicted (H, W, 3) uint8)."""
+    return _noise(colour_distance(observed, predicted, cfg.shift_px), disc)
+
+
+@dataclass(frozen=True)
+class CaptureMatte:
+    """What the first mattes of a capture teach the second pass.
+
+    ``noise``: the capture's median crop noise level (a crop may measure more, never uses more);
+    ``object_hist`` (bins,)*3 or None: the object's colours over the capture, from pixels decided
+    object where the prediction is sound (:func:`sure_object_counts`, summed, normalized).
+    """
+
+    noise: float
+    object_hist: np.ndarray | None = None
+
+
+def sure_object_counts(rgba: np.ndarray, guessed: np.ndarray | None, bins: int = 32) -> np.ndarray:
+    """Colour counts (bins,)*3 float64 of a matte's sure object pixels: opaque, not at its edge,
+    not where the prediction was a guess. ``rgba`` (H, W, 4) uint8 from :func:`matte`."""
+    solid = cv2.erode((rgba[..., 3] == 255).astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    if guessed is not None:
+        solid &= ~guessed
+    return colour_counts(rgba[..., :3][solid], bins)
+
+
+def capture_matte(noises: list[float], counts: np.ndarray | None) -> CaptureMatte:
+    """The capture's statistics from per-crop noise levels and summed object colour counts."""
+    hist = normalized_histogram(counts) if counts is not None and counts.sum() >= 50 else None
+    return CaptureMatte(float(np.median(noises)), hist)
+
+
 def matte(observed: np.ndarray, predicted: np.ndarray, disc: np.ndarray,
-          cfg: MatteConfig = MatteConfig(), guessed: np.ndarray | None = None) -> np.ndarray:
+          cfg: MatteConfig = MatteConfig(), guessed: np.ndarray | None = None,
+          capture: CaptureMatte | None = None) -> np.ndarray:
     """Straight RGBA (H, W, 4) uint8 of the object from ``observed`` (H, W, 3) uint8 and the
     predicted background ``predicted`` (H, W, 3) uint8, inside ``disc`` (H, W) bool.
 
     ``guessed`` (H, W) bool: pixels where the prediction is a guess (colour decides there).
+    ``capture``: the second pass's statistics of the whole capture (noise cap, object colours).
     """
     d = colour_distance(observed, predicted, cfg.shift_px)
     outside = ~disc
-    # Noise level from where no object can be. Robust to a room part the prediction gets wrong
-    # (a far wall seen edge-on): the lower quartile, scaled to the median it has on clean crops.
-    # Without enough room outside the disc (a fixed window), the whole crop stands in: the room
-    # is most of it.
-    ring = d[outside] if outside.sum() > 50 else d
-    noise = 1.6 * float(np.percentile(ring, 25)) / 0.6745
+    noise = _noise(d, disc)
+    if capture is not None:
+        noise = min(noise, capture.noise)
     t0 = max(cfg.min_threshold, cfg.low_sigmas * noise)
     t1 = max(t0 * 1.5, cfg.high_sigmas * noise)
     alpha = np.clip((d - t0) / (t1 - t0), 0, 1) * disc
@@ -190,7 +256,8 @@ def matte(observed: np.ndarray, predicted: np.ndarray, disc: np.ndarray,
     core = alpha > 0.5
     if guessed is not None and guessed.any():
         sure_room = (outside | (d <= t0)) & ~guessed
-        core &= ~room_by_colour(observed, core & guessed, sure_room, core, cfg.colour_bins, cfg.colour_ratio)
+        core &= ~room_by_colour(observed, core & guessed, sure_room, core, cfg.colour_bins, cfg.colour_ratio,
+                                capture.object_hist if capture is not None else None)
     if core.any():
         # Specks and the thin lines a misregistered pattern leaves are cut apart by an opening and
         # dropped; the thin parts of the object that the opening removed grow back from the
@@ -202,10 +269,25 @@ def matte(observed: np.ndarray, predicted: np.ndarray, disc: np.ndarray,
         core = _fill_holes(kept.astype(bool))
     alpha = _edge_alpha(observed, predicted, core, cfg.edge_px) * disc
     alpha[alpha < 0.02] = 0
-    # Decontaminate: observed = a F + (1 - a) B, so F = (observed - (1 - a) B) / a at the edges.
+    return straight_rgba(observed, predicted, alpha)
+
+
+def straight_rgba(observed: np.ndarray, predicted: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """Straight RGBA (H, W, 4) uint8 from alpha (H, W) float 0..1: the object's colour decontaminated.
+
+    observed = a F + (1 - a) B, so F = (observed - (1 - a) B) / a at the edges.
+    """
     o = observed.astype(np.float32)
     b = predicted.astype(np.float32)
-    a = alpha[..., None]
+    a = alpha.astype(np.float32)[..., None]
     fg = np.where(a > 0.15, (o - (1 - a) * b) / np.maximum(a, 1e-3), o)
-    rgba = np.concatenate([np.clip(fg, 0, 255), alpha[..., None] * 255], -1)
+    rgba = np.concatenate([np.clip(fg, 0, 255), a * 255], -1)
     return np.round(rgba).astype(np.uint8)
+
+
+def temporal_median(alphas: list[np.ndarray]) -> np.ndarray:
+    """Per-pixel median (H, W) uint8 of the alphas (H, W) uint8 of consecutive crops (2 or 3;
+    with 2 the median is their mean). A part missed or added in one frame only is outvoted; the
+    crop follows the object, so its parts move little between neighbouring frames."""
+    return np.median(np.stack(alphas), 0).round().astype(np.uint8)
+

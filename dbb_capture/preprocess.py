@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import shutil
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -36,11 +36,14 @@ from .crops import (
     ObjectCrop,
     alpha_in_frame,
     crops_json,
+    follows_previous,
     object_crop,
     on_checker,
+    rematte,
     split_by_time,
     temporal_difference,
     up_from_cameras,
+    voted_rgba,
 )
 from .errors import DbbError, InputError
 from .formats import (
@@ -52,7 +55,7 @@ from .formats import (
     write_transforms,
 )
 from .io import FootageSource, R3dSource, capture_footage, open_footage
-from .matte import MatteConfig, matte
+from .matte import CaptureMatte, MatteConfig, capture_matte, matte, noise_level, sphere_disc, sure_object_counts
 from .outputs import atomic_dir, read_json, write_json
 from .poses import DetectorConfig, PoseConfig, PoseRun, estimate_poses
 from .progress import progress
@@ -344,17 +347,53 @@ class CropsOutput:
 
 @dataclass(frozen=True)
 class _CropSegment:
-    """One worker's share of the crops stage: contiguous frames and everything to process them."""
+    """One worker's share of the crops stage's first pass: contiguous frames and everything to
+    crop, predict and matte them."""
 
     source: FootageSource
     c2w: dict                    # frame index -> (4, 4) OpenCV c2w
     intr: Intrinsics             # of the footage (distortion included)
-    frame_intr: Intrinsics       # of the undistorted frames (masks are drawn there)
     sphere: ObjectSphere
     size: int
     fill: float
     matte: MatteConfig
     model: Path                  # background/field.pt
+    scratch: Path                # where the first pass leaves each crop's arrays for the second
+    sheet_at: frozenset
+
+
+@dataclass(frozen=True)
+class _FirstMatte:
+    """A crop after the first pass (its arrays in the scratch folder)."""
+
+    index: int
+    name: str
+    cam: Any
+    touches_border: bool
+    noise: float                 # the matte's noise level in this crop
+
+
+@dataclass(frozen=True)
+class _FirstPass:
+    crops: list[_FirstMatte]
+    object_counts: np.ndarray | None   # (bins,)*3 sure object colours where a prediction was a guess
+
+
+@dataclass(frozen=True)
+class _MatteSegment:
+    """One worker's share of the second pass: its crops, their temporal neighbours just outside
+    the segment (None: not the next frame) and the capture's statistics."""
+
+    crops: tuple[_FirstMatte, ...]
+    before: _FirstMatte | None
+    after: _FirstMatte | None
+    follows: frozenset           # frame indices that directly follow the previous crop in time (no gap)
+    c2w: dict
+    frame_intr: Intrinsics       # of the undistorted frames (masks are drawn there)
+    fill: float
+    matte: MatteConfig
+    capture: CaptureMatte
+    scratch: Path
     out: Path
     sheet_at: frozenset
 
@@ -371,23 +410,78 @@ class _CropResult:
 _MODELS: dict = {}  # background model per path, loaded once per process
 
 
-def _crop_segment(seg: _CropSegment, tick: Callable[[int], None] | None = None) -> list[_CropResult]:
-    """Crop, predict, matte and write the frames of one segment (in this or a spawned process)."""
+def _crop_segment(seg: _CropSegment, tick: Callable[[int], None] | None = None) -> _FirstPass:
+    """First pass over one segment (in this or a spawned process): crop, predict, matte; keeps
+    each crop's arrays for the second pass and what the capture's statistics need."""
     from .parallel import report
 
     tick = tick or report
     if seg.model not in _MODELS:
         _MODELS[seg.model] = BackgroundModel.load(seg.model)
     model = _MODELS[seg.model]
-    sp, out, prev = seg.sphere, [], None
+    sp, out, counts = seg.sphere, [], None
+    disc = sphere_disc(seg.size, seg.fill, seg.matte.disc_margin)
     for f in seg.source.read(sorted(seg.c2w)):
         c2w = seg.c2w[f.index]
         oc = object_crop(f.image, seg.intr, c2w, sp.center, sp.radius, sp.up, seg.size, seg.fill,
                          model.render, seg.matte, model.guessed)
-        _write_png(seg.out / f"crops/{f.name}.png", cv2.cvtColor(oc.rgba, cv2.COLOR_RGBA2BGRA))
-        _write_png(seg.out / f"masks/{f.name}.png", alpha_in_frame(oc.rgba[..., 3], oc.cam, seg.frame_intr, c2w))
-        row = _sheet_row(f.image, seg.intr, c2w, sp.center, oc, prev) if f.index in seg.sheet_at else None
-        out.append(_CropResult(f.index, oc.cam, oc.touches_border, float(oc.rgba[..., 3].mean()) / 255.0, row))
+        if oc.guessed is not None and oc.guessed.any():
+            c = sure_object_counts(oc.rgba, oc.guessed, seg.matte.colour_bins)
+            counts = c if counts is None else counts + c
+        extra = {}
+        if f.index in seg.sheet_at:
+            extra["sheet_frame"] = _sheet_frame(f.image, oc.cam, seg.intr, c2w, sp.center)
+        np.savez(seg.scratch / f"{f.name}.npz", observed=oc.observed, predicted=oc.predicted,
+                 guessed=oc.guessed if oc.guessed is not None else np.zeros(0, bool),
+                 inside=oc.inside if oc.inside is not None else np.zeros(0, np.uint8), **extra)
+        out.append(_FirstMatte(f.index, f.name, oc.cam, oc.touches_border,
+                               noise_level(oc.observed, oc.predicted, disc, seg.matte)))
+        tick(1)
+    return _FirstPass(out, counts)
+
+
+def _load_crop(scratch: Path, fm: _FirstMatte) -> tuple[ObjectCrop, np.ndarray | None]:
+    """A first-pass crop back from the scratch folder (no RGBA yet), and its contact-sheet frame."""
+    with np.load(scratch / f"{fm.name}.npz") as z:
+        g, inside = z["guessed"], z["inside"]
+        oc = ObjectCrop(fm.cam, z["observed"], z["predicted"], np.zeros(0, np.uint8), fm.touches_border,
+                        g if g.size else None, inside if inside.size else None)
+        return oc, (z["sheet_frame"] if "sheet_frame" in z else None)
+
+
+def _matte_segment(seg: _MatteSegment, tick: Callable[[int], None] | None = None) -> list[_CropResult]:
+    """Second pass over one segment: matte again with the capture's statistics, take the
+    temporal median with the neighbouring frames' alphas, write the crops and masks."""
+    from .parallel import report
+
+    tick = tick or report
+    chain = [c for c in (seg.before, *seg.crops, seg.after) if c is not None]
+    alphas: dict = {}
+
+    def alpha_of(fm: _FirstMatte) -> np.ndarray:
+        if fm.index not in alphas:
+            alphas[fm.index] = rematte(_load_crop(seg.scratch, fm)[0], seg.fill, seg.capture, seg.matte)
+        return alphas[fm.index]
+
+    mine = {c.index for c in seg.crops}
+    out, prev = [], None
+    for k, fm in enumerate(chain):
+        if fm.index not in mine:
+            continue
+        nb = [fm]
+        if k > 0 and fm.index in seg.follows:
+            nb.append(chain[k - 1])
+        if k + 1 < len(chain) and chain[k + 1].index in seg.follows:
+            nb.append(chain[k + 1])
+        oc, sheet_frame = _load_crop(seg.scratch, fm)
+        oc = replace(oc, rgba=voted_rgba(oc, [alpha_of(c) for c in nb]))
+        for i in [i for i in alphas if i < fm.index - 1]:
+            del alphas[i]                                  # keep the sliding window small
+        _write_png(seg.out / f"crops/{fm.name}.png", cv2.cvtColor(oc.rgba, cv2.COLOR_RGBA2BGRA))
+        _write_png(seg.out / f"masks/{fm.name}.png",
+                   alpha_in_frame(oc.rgba[..., 3], oc.cam, seg.frame_intr, seg.c2w[fm.index]))
+        row = _sheet_tiles(sheet_frame, oc, prev) if sheet_frame is not None else None
+        out.append(_CropResult(fm.index, oc.cam, oc.touches_border, float(oc.rgba[..., 3].mean()) / 255.0, row))
         prev = oc.rgba
         tick(1)
     return out
@@ -396,6 +490,8 @@ def _crop_segment(seg: _CropSegment, tick: Callable[[int], None] | None = None) 
 def crops_stage(ctx: StageContext, bg: BackgroundOutput) -> CropsOutput:
     """Every posed frame -> RGBA crop; writes crops/, masks/, crops.json, dataset.json, contact_sheet.png.
 
+    Two passes (:mod:`.matte`): the first crops, predicts and mattes every frame and learns the
+    capture's statistics; the second mattes again with them and votes over neighbouring frames.
     With ``workers`` > 1 and 40+ frames, contiguous segments go to spawned processes.
     """
     from .parallel import map_spawned, split
@@ -406,24 +502,43 @@ def crops_stage(ctx: StageContext, bg: BackgroundOutput) -> CropsOutput:
     splits = split_by_time(np.array([p.time for p in posed]), cfg.test_fraction)
     (out / "crops").mkdir()
     (out / "masks").mkdir()
+    scratch = out / "matte_scratch"
+    scratch.mkdir()
     indices = [p.index for p in posed]
     sheet_at = frozenset(indices[i] for i in np.linspace(0, len(posed) - 1, min(8, len(posed))).round().astype(int))
     c2w = {p.index: p.c2w for p in posed}
     workers = max(1, min(cfg.workers, len(indices) // 20))
+    parts = split(indices, workers)
 
-    def segment(idx) -> _CropSegment:
-        return _CropSegment(inp.footage, {i: c2w[i] for i in idx}, poses.run.intrinsics, poses.intrinsics, sphere,
-                            cfg.crop_size, cfg.crop_fill, cfg.matte, out / "background" / "field.pt", out, sheet_at)
+    def run(fn, tasks, task):
+        if workers > 1:
+            return map_spawned(fn, tasks, workers, lambda n: prog.advance(task, n))
+        return [fn(t, lambda n: prog.advance(task, n)) for t in tasks]
 
     with progress(transient=True) as prog:
         task = prog.add_task("crop and matte", total=len(posed), info="")
-        if workers > 1:
-            parts = map_spawned(_crop_segment, [segment(c) for c in split(indices, workers)], workers,
-                                lambda n: prog.advance(task, n))
-        else:
+        if workers == 1:
             _MODELS[out / "background" / "field.pt"] = bg.model
-            parts = [_crop_segment(segment(indices), lambda n: prog.advance(task, n))]
-    results = [r for part in parts for r in part]
+        first = run(_crop_segment, [_CropSegment(inp.footage, {i: c2w[i] for i in idx}, poses.run.intrinsics, sphere,
+                                                 cfg.crop_size, cfg.crop_fill, cfg.matte, out / "background" / "field.pt",
+                                                 scratch, sheet_at) for idx in parts], task)
+        crops = [c for part in first for c in part.crops]
+        counts = [p.object_counts for p in first if p.object_counts is not None]
+        capture = capture_matte([c.noise for c in crops], sum(counts) if counts else None)
+        task = prog.add_task("second matte", total=len(posed), info="")
+        linked = follows_previous(np.array([p.time for p in posed]))
+        follows = frozenset(i for i, f in zip(indices, linked) if f)
+        segs, at = [], 0
+        for idx in parts:
+            mine = tuple(crops[at:at + len(idx)])
+            before = crops[at - 1] if at > 0 else None
+            after = crops[at + len(idx)] if at + len(idx) < len(crops) else None
+            segs.append(_MatteSegment(mine, before, after, follows, c2w, poses.intrinsics, cfg.crop_fill, cfg.matte, capture,
+                                      scratch, out, sheet_at))
+            at += len(idx)
+        parts2 = run(_matte_segment, segs, task)
+    shutil.rmtree(scratch)
+    results = [r for part in parts2 for r in part]
     records = [CropRecord(f"crops/{p.name}.png", r.cam, p.index, p.time, str(sp), r.touches_border)
                for p, sp, r in zip(posed, splits, results)]
     coverage = [r.coverage for r in results]
@@ -460,6 +575,13 @@ def _sheet_row(frame: np.ndarray, intr: Intrinsics | None, c2w: np.ndarray | Non
     """frame (crop window drawn) | observed crop | predicted background | alpha | RGBA | dx, (cell, W, 3).
 
     The window is where the object centre projects (``intr``, ``c2w``, ``center``), or ``window``."""
+    return _sheet_tiles(_sheet_frame(frame, oc.cam, intr, c2w, center, cell, window), oc, prev, cell)
+
+
+def _sheet_frame(frame: np.ndarray, cam: Any, intr: Intrinsics | None, c2w: np.ndarray | None,
+                 center: np.ndarray | None, cell: int = 128,
+                 window: tuple[int, int, int] | None = None) -> np.ndarray:
+    """The contact sheet's frame (cell high, RGB uint8) with the crop window drawn."""
     h, w = frame.shape[:2]
     scale = cell / h
     small = cv2.resize(frame, (max(1, round(w * scale)), cell), interpolation=cv2.INTER_AREA)
@@ -467,10 +589,15 @@ def _sheet_row(frame: np.ndarray, intr: Intrinsics | None, c2w: np.ndarray | Non
         uv = (np.array(window[:2], float) + window[2] / 2) * scale
     else:
         uv = project_points(center[None], c2w, intr)[0] * scale
-    half = oc.cam.window_px / 2 * scale
+    half = cam.window_px / 2 * scale
     x0, y0 = round(uv[0] - half), round(uv[1] - half)
     x1, y1 = round(uv[0] + half), round(uv[1] + half)
     cv2.rectangle(small, (x0, y0), (x1, y1), (255, 255, 0), 1)
+    return small
+
+
+def _sheet_tiles(small: np.ndarray, oc: ObjectCrop, prev: np.ndarray | None, cell: int = 128) -> np.ndarray:
+    """A contact sheet row: the frame beside the crop's observed, predicted, alpha, RGBA and dx tiles."""
     tiles = [oc.observed, oc.predicted, np.repeat(oc.rgba[..., 3:], 3, -1), on_checker(oc.rgba),
              temporal_difference(prev, oc.rgba) if prev is not None else np.zeros_like(oc.observed)]
     tiles = [cv2.resize(t, (cell, cell), interpolation=cv2.INTER_NEAREST) for t in tiles]

@@ -155,6 +155,7 @@ def test_preprocess_writes_crops_dataset(plate_capture, tmp_path):
     assert stats["background"]["mode"] == "clean plate"
     assert stats["sequences"]["train"] > 0
     assert (ds / "contact_sheet.png").stat().st_size > 10_000 and (ds / "background" / "field.pt").is_file()
+    assert not (ds / "matte_scratch").exists()          # the matte's second pass cleans up after itself
     assert json.loads((ds / "preprocess.json").read_text())["stages_run"] == ["poses", "background", "crops"]
 
 

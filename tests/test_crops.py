@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from dbb_capture.cameras import Intrinsics, look_at, project_points
-from dbb_capture.crops import (crop_camera, cut_crop, sequence_windows, split_by_time,
+from dbb_capture.crops import (crop_camera, cut_crop, follows_previous, sequence_windows, split_by_time,
                                up_from_cameras, viewpoint)
 from dbb_capture.synth import SynthConfig, make_scene, render_object_rgba
 
@@ -134,3 +134,10 @@ def test_split_and_windows_respect_time_gaps_and_splits():
         assert np.allclose(np.diff(t[s:s + 11]), 0.1) and len(set(split[s:s + 11])) == 1
     assert 0 in starts and 4 in starts and 5 not in starts    # 4..14 fits before the gap
     assert 15 in starts                                       # starts right after the gap
+
+
+def test_follows_previous_breaks_at_gaps():
+    """The matte's temporal vote links a crop only to frames right next to it in time."""
+    t = np.array([0.0, 0.1, 0.2, 0.5, 0.6, 0.7])        # frames 0.3 and 0.4 dropped
+    assert follows_previous(t).tolist() == [False, True, True, False, True, True]
+    assert follows_previous(np.array([1.0])).tolist() == [False]
