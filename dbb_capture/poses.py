@@ -539,9 +539,10 @@ def calibrate(dets: Sequence[Detection], board: BoardSpec, width: int, height: i
     """Intrinsics (OpenCV k1, k2, p1, p2, k3) from board detections, rejecting outlier views.
 
     Views whose own RMS exceeds max(3 x median, 1 px) are dropped and the fit repeated. With
-    ``precise``, corners that disagree with their view's pose (see :func:`_corner_inliers`) are
-    dropped and the fit repeated once more, and fx = fy is imposed unless the corners call for
-    two focal lengths. Without it, the fit is OpenCV's own (every corner of the kept views, free
+    ``precise``, corners that disagree with their view's pose (see :func:`_corner_inliers`;
+    beyond 4 x the capture's typical residual) are dropped, then views still over 3 x the
+    median RMS, and the fit repeated; fx = fy is imposed unless the corners call for two
+    focal lengths, and k3, p1, p2 are left at 0 unless they call for them. Without it, the fit is OpenCV's own (every corner of the kept views, free
     fx and fy), which is what OpenCV's calibration tools compute: from a few views the focal
     length is loose (+-3% from 4 photos) and either refinement alone moves it by 1-1.5 of its
     standard deviations, so only OpenCV's estimator reproduces OpenCV's figures there.
@@ -570,11 +571,26 @@ def calibrate(dets: Sequence[Detection], board: BoardSpec, width: int, height: i
                            tuple(rejected), float(std[0]), float(std[1]))
     intr = _intrinsics(width, height, K, dist)
     # Partly hidden corners pull the focal length and principal point as they pull poses.
-    keep = [_corner_inliers(o.astype(np.float64), i.astype(np.float64), _c2w(r, t), intr, PoseConfig())
+    # A corner is off beyond 4 x the capture's typical residual (not a fixed 0.25 px: the
+    # re-fitted corners are good to ~0.02 px, so 0.1-0.25 px is already far off).
+    res = [np.linalg.norm(cv2.projectPoints(o, r, t, K, dist)[0].reshape(-1, 2) - i, axis=1)
+           for o, i, r, t in zip(objs, imgs, rvecs, tvecs)]
+    cfg = PoseConfig(corner_floor_px=4 * float(np.median(np.concatenate(res))) / 1.1774)
+    keep = [_corner_inliers(o.astype(np.float64), i.astype(np.float64), _c2w(r, t), intr, cfg)
             for o, i, r, t in zip(objs, imgs, rvecs, tvecs)]
-    if any(k is not None for k in keep):
-        objs = [o if k is None else o[k] for o, k in zip(objs, keep)]
-        imgs = [i if k is None else i[k] for i, k in zip(imgs, keep)]
+    objs = [o if k is None else o[k] for o, k in zip(objs, keep)]
+    imgs = [i if k is None else i[k] for i, k in zip(imgs, keep)]
+    rms, K, dist, _, _, std, _, per_view = cv2.calibrateCameraExtended(
+        objs, imgs, (width, height), K, dist, flags=flags | cv2.CALIB_USE_INTRINSIC_GUESS)
+    std = np.ravel(std)
+    # Views still 3 x the typical RMS have more bad corners than may be dropped (half the
+    # corners of a view behind the object, say): out, without the 1-px floor above.
+    bad = np.ravel(per_view) > 3 * np.median(per_view)
+    if bad.any() and len(objs) - bad.sum() >= min_views:
+        rejected += [d.name for d, b in zip(views, bad) if b]
+        views = [d for d, b in zip(views, bad) if not b]
+        objs = [o for o, b in zip(objs, bad) if not b]
+        imgs = [i for i, b in zip(imgs, bad) if not b]
         rms, K, dist, _, _, std, _, _ = cv2.calibrateCameraExtended(
             objs, imgs, (width, height), K, dist, flags=flags | cv2.CALIB_USE_INTRINSIC_GUESS)
         std = np.ravel(std)
