@@ -84,7 +84,7 @@ class RssmConfig:
                                    # warped, and generated (CDNA-style; static parts copied exactly);
                                    # "blend" = one mask between warped and generated (earlier runs)
     energy_scale: float = 0.0      # weight of the motion-energy match of the open loop (see energy_match)
-    prior_first: bool = False      # also decode frame 1 from a prior sample at h_1 (the run-time first step)
+    prior_first: bool = True       # also decode frame 1 from a prior sample at h_1 (the run-time first step)
     open_loop_from: int = 1        # the training open loop starts from the filtering state of this frame:
                                    # 1 = after the posterior has seen frames 0 and 1 (see sequence_loss)
     motion_weight: float = 10.0    # extra weight of changing pixels in the reconstruction losses

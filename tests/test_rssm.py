@@ -272,11 +272,12 @@ def test_open_loop_starts_after_two_frames_and_motion_weights(monkeypatch):
         real = m.decoder.forward
         monkeypatch.setattr(m.decoder, "forward", lambda f, c, p: decoded.append(len(f)) or real(f, c, p))
         rssm.sequence_loss(m, x, v)
-        assert decoded == [2 * 11, 2 * n_open]                 # filtering frames, then the open loop
+        # Filtering frames, then the open loop (and, from k >= 1, frame 1 from the prior: prior_first).
+        assert decoded == [2 * 11, 2 * (n_open + (k >= 1))]
     # A long window is decoded sparsely: decode_frames (+ 1 filtering) frames, the transition runs all 30 steps.
     decoded.clear()
     rssm.sequence_loss(m, torch.rand(2, 31, 4, 32, 32), torch.rand(2, 31, 3))
-    assert decoded == [2 * 11, 2 * 10]
+    assert decoded == [2 * 11, 2 * (10 + 1)]
     ti = rssm._decoded(31, 10, 4, torch.device("cpu"))
     assert len(ti) == 10 and ti.min() >= 4 and ti.max() <= 30 and bool((ti.diff() > 0).all())
     w = rssm.motion_weights(torch.stack([torch.zeros(4, 8, 8), torch.zeros(4, 8, 8), torch.ones(4, 8, 8)])[None], 10.0)
