@@ -380,10 +380,8 @@ class TreeRenderer:
         skip = np.full(empty.shape, 255, np.uint8)
         if not empty.all():
             skip[...] = np.minimum(distance_transform_cdt(empty, metric="chessboard"), 255)
-        from .octree_cpu import MORTON
-
         lc = cells % BRICK
-        slot = binv.astype(np.int64) * BRICK ** 3 + (MORTON[lc[:, 0]] << 2 | MORTON[lc[:, 1]] << 1 | MORTON[lc[:, 2]])
+        slot = binv.astype(np.int64) * BRICK ** 3 + (lc[:, 0] * BRICK + lc[:, 1]) * BRICK + lc[:, 2]
         order = np.argsort(slot, kind="stable")
         n_slots = max(1, len(ub)) * BRICK ** 3
         leaf = np.zeros((n_slots, 2), np.int32)               # [sigma (float32 bits), row]

@@ -26,9 +26,6 @@ from .fields import _C0, _C1, _C2, _C3
 BRICK_SHIFT = 3      # 8^3 leaves per brick (the leaf table's unit)
 _FAR = 1e30          # 1 / direction component when that component is ~0
 _MAX_HITS = 64       # colour lookups a ray defers before shading them (see trace_rays)
-# Leaves inside a brick are in Morton order, x the most significant bit of each triple: a
-# 2x2x2 block shares one cache line of the leaf table, so a ray reads ~2 leaves per line.
-MORTON = np.array([sum(((v >> b) & 1) << (3 * b) for b in range(3)) for v in range(8)], np.int64)
 
 # No nnan/ninf: exits of axis-parallel rays are huge finite numbers and must compare right.
 _FM = {"nsz", "arcp", "contract", "afn", "reassoc"}
@@ -241,8 +238,8 @@ def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.n
     bound the occupied leaves (lattice units). ``skip`` (nbrk^3,) uint8 is the chessboard
     distance, in bricks, of each 8^3-leaf brick to the nearest occupied one (0 occupied),
     ``bricks`` (nbrk^3,) int32 the brick of each 8^3-leaf brick (-1 empty);
-    ``leaf_row`` (n_bricks * 512, 2) int32 holds per leaf (brick * 512 + Morton index, see
-    :data:`MORTON`) its density (float32 bits, read
+    ``leaf_row`` (n_bricks * 512, 2) int32 holds per leaf (brick * 512 + x * 64 + y * 8 + z)
+    its density (float32 bits, read
     through the float32 view ``leaf_sigma`` of the same memory; 0 = empty) and its data row,
     so one cache line serves both.
     ``coef`` (K, >= 3 * B) uint16 the float16 bits of each row's SH coefficients (rows
@@ -323,7 +320,7 @@ def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.n
             mz = ((cz + hz) - pz) * iz
             while True:
                 tn = min(mx, min(my, mz))
-                local = base | (MORTON[lx] << 2) | (MORTON[ly] << 1) | MORTON[lz]
+                local = base | (lx << 6) | (ly << 3) | lz
                 sg = leaf_sigma[local, 0]
                 if sg > 0:
                     a = 1.0 - _exp_neg(sg * (min(tn, t_end) - t))
@@ -353,19 +350,21 @@ def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.n
                 t = max(tn, t)
                 if t >= t_end:
                     break
-                # Step along the axis whose boundary comes first, without branches: which
-                # axis that is changes from leaf to leaf and would defeat branch prediction.
-                ux = int(mx <= my) & int(mx <= mz)
-                uy = (1 - ux) & int(my <= mz)
-                uz = 1 - ux - uy
-                lx += ux * stx
-                ly += uy * sty
-                lz += uz * stz
-                mx += ux * sx
-                my += uy * sy
-                mz += uz * sz
-                if (lx | ly | lz) & ~7:          # left the brick (-1 or 8 on one axis)
-                    break
+                if mx <= my and mx <= mz:
+                    lx += stx
+                    mx += sx
+                    if lx < 0 or lx > 7:
+                        break
+                elif my <= mz:
+                    ly += sty
+                    my += sy
+                    if ly < 0 or ly > 7:
+                        break
+                else:
+                    lz += stz
+                    mz += sz
+                    if lz < 0 or lz > 7:
+                        break
         if nh:
             vr, vg, vb = _shade(nh, hrow, hcell, hw, coef, nb, degree, sigmoid, frame, cc, shb,
                                 px, py, pz, wsx, wsy, wsz)
