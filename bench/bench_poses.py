@@ -15,6 +15,9 @@ fast path over 2 spawned processes. Prints Markdown rows for docs/benchmarks.md.
     flock /tmp/dbb-bench.lock .venv/bin/python bench/bench_poses.py accuracy --work /tmp/dbb-bench-poses
     flock /tmp/dbb-bench.lock .venv/bin/python bench/bench_poses.py speed --work /tmp/dbb-bench-poses
     flock -s /tmp/dbb-bench.lock .venv/bin/python bench/bench_poses.py calibration --work /tmp/dbb-bench-poses
+    # further captures with the same settings, other seeds:
+    flock -s /tmp/dbb-bench.lock .venv/bin/python bench/bench_poses.py accuracy --work /tmp/dbb-bench-poses \
+        --cases 4,4,4,0,1 --seeds 60,61,62,63,64
 """
 
 from __future__ import annotations
@@ -81,15 +84,23 @@ def board_in_view(cams: dict, board: BoardSpec, intr) -> np.ndarray:
     return np.array(out)
 
 
-def accuracy(work: Path, seconds: float, fps: float) -> None:
+def accuracy(work: Path, seconds: float, fps: float, cases: list[int] | None = None,
+             seeds: list[int] | None = None) -> None:
+    """``cases``: indices into CASES (repeats allowed), ``seeds``: one per case (default 10 + k,
+    the table's captures; other seeds render further captures with the same settings)."""
     from dbb_capture.synth import SynthConfig, load_ground_truth, write_capture
 
     rows = []
-    for k, (name, board, dist, (w, h)) in enumerate(CASES):
-        cap = work / f"acc{k}"
+    cases = list(range(len(CASES))) if cases is None else cases
+    seeds = [10 + k for k in cases] if seeds is None else seeds
+    for k, seed in zip(cases, seeds):
+        name, board, dist, (w, h) = CASES[k]
+        cap = work / (f"acc{k}" if seed == 10 + k else f"acc{k}_s{seed}")
+        if seed != 10 + k:
+            name = f"{name}, seed {seed}"
         if not (cap / "video.mp4").exists():
             write_capture(SynthConfig(kind="static", seconds=seconds, fps=fps, width=w, height=h,
-                                      board=board, dist=dist, background_seconds=None, seed=10 + k),
+                                      board=board, dist=dist, background_seconds=None, seed=seed),
                           cap, overwrite=True)
         intr, cams, _ = load_ground_truth(cap)
         src = open_footage(cap)
@@ -225,10 +236,13 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=4.8, help="Length of each synthetic capture.")
     ap.add_argument("--fps", type=float, default=10.0)
     ap.add_argument("--repeats", type=int, default=4, help="speed: forth-and-back passes.")
+    ap.add_argument("--cases", help="accuracy: comma-separated indices into CASES (default all).")
+    ap.add_argument("--seeds", help="accuracy: one synth seed per case (default 10 + index).")
     a = ap.parse_args()
     a.work.mkdir(parents=True, exist_ok=True)
     if a.what == "accuracy":
-        accuracy(a.work, a.seconds, a.fps)
+        ints = lambda v: None if v is None else [int(x) for x in v.split(",")]   # noqa: E731
+        accuracy(a.work, a.seconds, a.fps, ints(a.cases), ints(a.seeds))
     elif a.what == "calibration":
         calibration(a.work)
     else:
