@@ -157,9 +157,9 @@ def _pack(v0: float, v1: float, v2: float, frame: int) -> int:
     """One colour cache entry: RGB as 16-bit fixed point (step 1/16384, 96 dB) and the frame
     stamp in the top 16 bits. One 8-byte store and load: threads share the cache without
     locks (a racing thread writes the same value, and never half of one)."""
-    q0 = min(int(v0 * 16384.0 + 0.5), 65535)
-    q1 = min(int(v1 * 16384.0 + 0.5), 65535)
-    q2 = min(int(v2 * 16384.0 + 0.5), 65535)
+    q0 = min(max(int(v0 * 16384.0 + 0.5), 0), 65535)
+    q1 = min(max(int(v1 * 16384.0 + 0.5), 0), 65535)
+    q2 = min(max(int(v2 * 16384.0 + 0.5), 0), 65535)
     return q0 | (q1 << 16) | (q2 << 32) | (frame << 48)
 
 
