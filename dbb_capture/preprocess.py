@@ -456,12 +456,13 @@ def _matte_segment(seg: _MatteSegment, tick: Callable[[int], None] | None = None
 
     tick = tick or report
     chain = [c for c in (seg.before, *seg.crops, seg.after) if c is not None]
-    alphas: dict = {}
+    loaded: dict = {}                                      # frame index -> (crop, sheet frame, second alpha)
 
-    def alpha_of(fm: _FirstMatte) -> np.ndarray:
-        if fm.index not in alphas:
-            alphas[fm.index] = rematte(_load_crop(seg.scratch, fm)[0], seg.fill, seg.capture, seg.matte)
-        return alphas[fm.index]
+    def load(fm: _FirstMatte) -> tuple:
+        if fm.index not in loaded:
+            oc, sheet_frame = _load_crop(seg.scratch, fm)
+            loaded[fm.index] = (oc, sheet_frame, rematte(oc, seg.fill, seg.capture, seg.matte))
+        return loaded[fm.index]
 
     mine = {c.index for c in seg.crops}
     out, prev = [], None
@@ -473,10 +474,10 @@ def _matte_segment(seg: _MatteSegment, tick: Callable[[int], None] | None = None
             nb.append(chain[k - 1])
         if k + 1 < len(chain) and chain[k + 1].index in seg.follows:
             nb.append(chain[k + 1])
-        oc, sheet_frame = _load_crop(seg.scratch, fm)
-        oc = replace(oc, rgba=voted_rgba(oc, [alpha_of(c) for c in nb]))
-        for i in [i for i in alphas if i < fm.index - 1]:
-            del alphas[i]                                  # keep the sliding window small
+        oc, sheet_frame, _ = load(fm)
+        oc = replace(oc, rgba=voted_rgba(oc, [load(c)[2] for c in nb]))
+        for i in [i for i in loaded if i < chain[max(0, k - 1)].index]:
+            del loaded[i]                                  # keep the sliding window small
         _write_png(seg.out / f"crops/{fm.name}.png", cv2.cvtColor(oc.rgba, cv2.COLOR_RGBA2BGRA))
         _write_png(seg.out / f"masks/{fm.name}.png",
                    alpha_in_frame(oc.rgba[..., 3], oc.cam, seg.frame_intr, seg.c2w[fm.index]))

@@ -211,3 +211,43 @@ def test_fixed_camera_mode_on_real_pendulum_footage(tmp_path):
     assert res.exit_code == 0, res.output
     stats = json.loads((ds / "dataset.json").read_text())
     assert stats["crops"] > 100 and stats["sequences"]["train"] > 50 and stats["touching_border"] == 0
+
+
+def test_second_matte_pass_votes_across_segment_cuts(tmp_path):
+    """The crops stage's second pass gives the same crops in one segment or in three (each sees its
+    neighbours across the cut), and the temporal median skips a gap in time."""
+    from dbb_capture.matte import CaptureMatte, MatteConfig
+    from dbb_capture.preprocess import _FirstMatte, _matte_segment, _MatteSegment
+
+    center = np.array([0.3, 0.2, -0.08])
+    c2ws = _ring(center, n=8)
+    rng = np.random.default_rng(0)
+    yy, xx = np.mgrid[0:32, 0:32]
+    room = np.where((np.sin(yy / 2.0) > 0)[..., None], [150, 90, 50], [95, 55, 35]).astype(float)
+    noisy = lambda im: np.clip(im + rng.normal(0, 2.0, im.shape), 0, 255).astype(np.uint8)
+    crops, c2w = [], {}
+    for i, m in enumerate(c2ws):
+        disc = (xx - 16) ** 2 + (yy - 15) ** 2 <= (7 if i != 4 else 3) ** 2   # frame 4 misses most of it
+        obs = noisy(np.where(disc[..., None], [40, 70, 200], room))
+        np.savez(tmp_path / f"{i:05d}.npz", observed=obs, predicted=noisy(room), guessed=np.zeros(0, bool),
+                 inside=np.zeros(0, np.uint8))
+        crops.append(_FirstMatte(i, f"{i:05d}", crop_camera(m, _intr(), center, 0.1, UP, 32, 0.9), False, 0.01))
+        c2w[i] = m
+    follows = frozenset({1, 2, 4, 5, 6, 7})                 # frame 3 follows a gap
+
+    def run(parts, out):
+        (out / "crops").mkdir(parents=True)
+        (out / "masks").mkdir()
+        for a, b in parts:
+            seg = _MatteSegment(tuple(crops[a:b]), crops[a - 1] if a else None, crops[b] if b < 8 else None,
+                                follows, c2w, _intr(), 0.9, MatteConfig(), CaptureMatte(0.01), tmp_path, out,
+                                frozenset())
+            _matte_segment(seg, tick=lambda n: None)
+        return [cv2.imread(str(out / "crops" / f"{i:05d}.png"), cv2.IMREAD_UNCHANGED) for i in range(8)]
+
+    one = run([(0, 8)], tmp_path / "one")
+    three = run([(0, 3), (3, 5), (5, 8)], tmp_path / "three")
+    assert all(np.array_equal(a, b) for a, b in zip(one, three))
+    big = (xx - 16) ** 2 + (yy - 15) ** 2 <= 6 ** 2
+    assert (one[4][..., 3][big] > 127).mean() > 0.95      # outvoted by frames 3 and 5
+    assert (one[2][..., 3][big] > 127).mean() > 0.95
