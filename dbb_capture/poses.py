@@ -823,10 +823,13 @@ def fill_from_device(poses: Sequence[FramePose], device_c2w: np.ndarray, min_ali
 
 
 def refine_jointly(dets: Sequence[Detection], poses: Sequence[FramePose], board: BoardSpec,
-                   intr: Intrinsics, square_pixels: bool = False) -> tuple[Intrinsics, list[FramePose], float]:
+                   intr: Intrinsics, square_pixels: bool = False,
+                   dist_terms: str = "k1 k2 p1 p2 k3") -> tuple[Intrinsics, list[FramePose], float]:
     """Bundle adjustment with the board corners as known 3D points: intrinsics and every posed
     frame's pose refined together (OpenCV's LM in ``calibrateCamera``, started from the current
-    intrinsics and poses; ``square_pixels`` keeps fx/fy as it is). Returns (intrinsics, poses, RMS px)."""
+    intrinsics and poses; ``square_pixels`` keeps fx/fy as it is). Distortion terms missing from
+    ``dist_terms`` stay 0: the calibration's test found no support for them, and freeing them
+    here lets the principal point drift. Returns (intrinsics, poses, RMS px)."""
     by_index = {d.index: d for d in dets}
     posed = [p for p in poses if p.posed]
     if len(posed) < 3:
@@ -843,6 +846,9 @@ def refine_jointly(dets: Sequence[Detection], poses: Sequence[FramePose], board:
         tvecs.append(w2c[:3, 3].reshape(3, 1).copy())
     flags = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_USE_EXTRINSIC_GUESS
     flags |= cv2.CALIB_FIX_ASPECT_RATIO if square_pixels else 0
+    terms = set(dist_terms.split())
+    flags |= 0 if "k3" in terms else cv2.CALIB_FIX_K3
+    flags |= 0 if {"p1", "p2"} <= terms else cv2.CALIB_ZERO_TANGENT_DIST
     rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(
         objs, imgs, (intr.width, intr.height), intr.K.copy(), intr.dist_array.copy(),
         rvecs, tvecs, flags=flags)
@@ -953,8 +959,9 @@ def estimate_poses(source: FootageSource, board: BoardSpec, intr: Intrinsics | N
     poses = reject_outliers(pose_frames(sharp, board, intr, pose_cfg), pose_cfg)
     refined_rms = None
     if refine:
-        intr, poses, refined_rms = refine_jointly(sharp, poses, board, intr,
-                                                  calib is not None and calib.square_pixels)
+        intr, poses, refined_rms = refine_jointly(
+            sharp, poses, board, intr, calib is not None and calib.square_pixels,
+            calib.dist_terms if calib is not None else "k1 k2 p1 p2 k3")
         poses = reject_outliers(poses, pose_cfg)
     if device_c2w is not None:
         poses = fill_from_device(poses, device_c2w)

@@ -21,8 +21,8 @@ from dbb_capture.cli.capture import main
 from dbb_capture.errors import DbbError
 from dbb_capture.io import Frame
 from dbb_capture.poses import (BoardDetector, Detection, DetectorConfig, FramePose, PoseConfig,
-                               detect_frames, diagnose_no_board, pose_frames, refine_saddles,
-                               refine_xjunctions, reject_outliers, solve_pose)
+                               detect_frames, diagnose_no_board, pose_frames, refine_jointly,
+                               refine_saddles, refine_xjunctions, reject_outliers, solve_pose)
 from dbb_capture.synth import Renderer, SynthConfig, make_scene, sensor, write_capture
 
 BOARD = BoardSpec(7, 5, 0.05, 0.0375, "DICT_5X5_100")
@@ -366,3 +366,16 @@ def test_corner_off_by_pixels_is_dropped(rendered):
     plain = pose_frames([det], BOARD, intr, PoseConfig(corner_floor_px=1e9))[0]
     assert plain.inliers is None
     assert _rot_err_deg(pose.c2w[:3, :3], c2w[:3, :3]) < 0.5 * _rot_err_deg(plain.c2w[:3, :3], c2w[:3, :3])
+
+
+def test_joint_refinement_keeps_the_calibrations_distortion_terms(rendered):
+    """Terms the calibration left out (k3, p1, p2) stay 0 in the bundle adjustment; all five move
+    when all five were fitted."""
+    intr, views = rendered
+    dets = detect_frames([Frame(k, k / 10, g, f"{k:05d}") for k, (_, g) in enumerate(views)], BOARD)
+    poses = pose_frames(dets, BOARD, intr)
+    assert sum(p.posed for p in poses) == len(views)
+    kept, _, rms = refine_jointly(dets, poses, BOARD, intr, True, "k1 k2")
+    assert rms < 0.3 and kept.dist[2:] == (0.0, 0.0, 0.0) and kept.fx == pytest.approx(kept.fy)
+    free, _, _ = refine_jointly(dets, poses, BOARD, intr)
+    assert all(v != 0.0 for v in free.dist)
