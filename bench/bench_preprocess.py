@@ -121,9 +121,9 @@ def rematte(capture: Path, dataset: Path) -> tuple[Path, Path]:
     import shutil
 
     from dbb_capture.background import BackgroundModel
-    from dbb_capture.crops import follows_previous, object_crop, rematte as second, voted_rgba
+    from dbb_capture.crops import follows_previous, object_crop, rematte as second, vote_neighbours, voted_rgba
     from dbb_capture.io import open_footage
-    from dbb_capture.matte import MatteConfig, capture_matte, noise_level, sphere_disc, sure_object_counts
+    from dbb_capture.matte import MatteConfig, capture_matte, sure_object_counts
 
     intr = Intrinsics.load(dataset / "camera.json")
     doc = json.loads((dataset / "crops.json").read_text())
@@ -132,13 +132,12 @@ def rematte(capture: Path, dataset: Path) -> tuple[Path, Path]:
     model = BackgroundModel.load(dataset / "background" / "field.pt")
     frames = doc["frames"]
     images = {f.index: f.image for f in open_footage(capture / "video.mp4").read(sorted(fr["source_frame"] for fr in frames))}
-    disc = sphere_disc(size, fill, cfg.disc_margin)
     crops, noises, counts = [], [], None
     for fr in frames:
         oc = object_crop(images[fr["source_frame"]], intr, _estimated_c2w(dataset, fr), center, radius, up, size, fill,
                          model.render, cfg, model.guessed)
         crops.append(oc)
-        noises.append(noise_level(oc.observed, oc.predicted, disc, cfg))
+        noises.append(oc.noise)
         if oc.guessed is not None and oc.guessed.any():
             c = sure_object_counts(oc.rgba, oc.guessed, cfg.colour_bins)
             counts = c if counts is None else counts + c
@@ -153,7 +152,7 @@ def rematte(capture: Path, dataset: Path) -> tuple[Path, Path]:
         shutil.copytree(dataset, out, ignore=shutil.ignore_patterns("images", "masks", "colmap"))
         outs.append(out)
     for k, (fr, oc) in enumerate(zip(frames, crops)):
-        nb = [alphas[k]] + ([alphas[k - 1]] if linked[k] else []) + ([alphas[k + 1]] if k + 1 < len(frames) and linked[k + 1] else [])
+        nb = [alphas[j] for j in vote_neighbours(k, linked)]
         for out, rgba in zip(outs, (oc.rgba, voted_rgba(oc, nb))):
             cv2.imwrite(str(out / fr["file_path"]), cv2.cvtColor(rgba, cv2.COLOR_RGBA2BGRA))
     return outs[0], outs[1]
@@ -202,7 +201,7 @@ def speed(work: Path, minutes: float) -> None:
     from dbb_capture.background import BackgroundModel
     from dbb_capture.board import BoardSpec
     from dbb_capture.crops import object_crop, rematte, up_from_cameras, voted_rgba
-    from dbb_capture.matte import MatteConfig, capture_matte, noise_level, sphere_disc
+    from dbb_capture.matte import capture_matte
     from dbb_capture.io import open_footage
     from dbb_capture.poses import DetectorConfig, detect_frames, pose_frames
 
@@ -224,7 +223,6 @@ def speed(work: Path, minutes: float) -> None:
     c2ws = []
     t_all = time.monotonic()
     crops, noises = [], []
-    disc = sphere_disc(64, 0.9, MatteConfig().disc_margin)
     for f in frames:
         t = time.monotonic()
         d = detect_frames([f], board, DetectorConfig())[0]
@@ -237,7 +235,7 @@ def speed(work: Path, minutes: float) -> None:
         t = time.monotonic()
         oc = object_crop(f.image, intr, p.c2w, np.array(obj["center"]), obj["radius"], up, 64, 0.9, model.render,
                          guessed=model.guessed)
-        noises.append(noise_level(oc.observed, oc.predicted, disc))
+        noises.append(oc.noise)
         timings["crop+render+matte"] += time.monotonic() - t
         crops.append(oc)
         n += 1

@@ -266,6 +266,7 @@ class ObjectCrop:
     touches_border: bool
     guessed: np.ndarray | None = None
     inside: np.ndarray | None = None
+    noise: float = float("nan")   # the matte's noise level in this crop (:func:`.matte.noise_level`)
 
 
 def object_crop(image: np.ndarray, src: Intrinsics, c2w: np.ndarray, center: np.ndarray, radius: float,
@@ -277,19 +278,19 @@ def object_crop(image: np.ndarray, src: Intrinsics, c2w: np.ndarray, center: np.
     ``guessed(cam) -> (S, S) bool`` (optional) marks where that prediction is only a guess.
     Pixels of the crop outside the frame are transparent (and the crop is flagged).
     """
-    from .matte import MatteConfig, matte, sphere_disc
+    from .matte import MatteConfig, matte_and_noise, sphere_disc
 
     mcfg = matte_cfg or MatteConfig()
     cam = crop_camera(c2w, src, center, radius, up, size, fill)
     observed, touched = cut_crop(image, cam, src, c2w)
     predicted = predict(cam)
     guess = guessed(cam) if guessed is not None else None
-    rgba = matte(observed, predicted, sphere_disc(size, fill, mcfg.disc_margin), mcfg, guess)
+    rgba, noise = matte_and_noise(observed, predicted, sphere_disc(size, fill, mcfg.disc_margin), mcfg, guess)
     inside = None
     if touched:
         inside = cut_crop(np.full(image.shape[:2], 255, np.uint8), cam, src, c2w)[0].reshape(size, size)
         rgba[..., 3] = np.minimum(rgba[..., 3], inside)
-    return ObjectCrop(cam, observed, predicted, rgba, touched, guess, inside)
+    return ObjectCrop(cam, observed, predicted, rgba, touched, guess, inside, noise)
 
 
 def rematte(oc: ObjectCrop, fill: float, capture, matte_cfg=None) -> np.ndarray:
@@ -301,6 +302,12 @@ def rematte(oc: ObjectCrop, fill: float, capture, matte_cfg=None) -> np.ndarray:
     disc = sphere_disc(oc.observed.shape[0], fill, mcfg.disc_margin)
     alpha = matte(oc.observed, oc.predicted, disc, mcfg, oc.guessed, capture)[..., 3]
     return np.minimum(alpha, oc.inside) if oc.inside is not None else alpha
+
+
+def vote_neighbours(k: int, linked: np.ndarray) -> list[int]:
+    """Positions whose alphas crop ``k`` of a run votes with: itself and the frames right before
+    and after it where no gap lies between (``linked`` (N,) bool: :func:`follows_previous`)."""
+    return [k] + ([k - 1] if k > 0 and linked[k] else []) + ([k + 1] if k + 1 < len(linked) and linked[k + 1] else [])
 
 
 def voted_rgba(oc: ObjectCrop, alphas: list[np.ndarray]) -> np.ndarray:

@@ -193,7 +193,7 @@ class VoxelField:
 
     def __init__(self, cfg: FieldConfig, volume: ObjectVolume, res: int, device: torch.device,
                  active: torch.Tensor | None = None, density: torch.Tensor | None = None,
-                 sh: torch.Tensor | None = None):
+                 sh: torch.Tensor | None = None, nearest: bool = False):
         cfg.validate()
         self.cfg = cfg
         self.volume = volume
@@ -219,7 +219,7 @@ class VoxelField:
         self.sh = RowTable(torch.cat(
             [sh.to(device).float().reshape(n, 3 * cfg.n_basis), torch.zeros(1, 3 * cfg.n_basis, device=device)]))
         self._occ_cache: torch.Tensor | None = None
-        self.nearest = False    # queries read the nearest lattice point (see FieldConfig.nearest_from)
+        self.nearest = nearest  # queries read the nearest lattice point (see FieldConfig.nearest_from)
 
     # ---- geometry -------------------------------------------------------------------------
     @property
@@ -337,10 +337,8 @@ class VoxelField:
         mask = F.max_pool3d(mask.view(1, 1, *(self.res,) * 3), 3, 1, 1).view(-1) > 0
         rows = self.index[mask.nonzero()[:, 0]].long()
         rows = rows[rows >= 0]
-        out = VoxelField(self.cfg, self.volume, self.res, self.device, self.active[rows],
-                         self.density.data[rows], self.sh.data[rows])
-        out.nearest = self.nearest
-        return out
+        return VoxelField(self.cfg, self.volume, self.res, self.device, self.active[rows],
+                          self.density.data[rows], self.sh.data[rows], self.nearest)
 
     @torch.no_grad()
     def upsampled(self, res: int) -> "VoxelField":
@@ -377,9 +375,8 @@ class VoxelField:
         cfg = FieldConfig(**cfgd)
         v = st["volume"]
         vol = ObjectVolume(tuple(v["center"]), float(v["radius"]), bool(v.get("estimated", False)))
-        out = cls(cfg, vol, st["res"], device, st["active"], st["density"], st["sh"])
-        out.nearest = bool(st.get("nearest", False))
-        return out
+        return cls(cfg, vol, st["res"], device, st["active"], st["density"], st["sh"],
+                   bool(st.get("nearest", False)))
 
 
 # ---- rays -------------------------------------------------------------------------------------

@@ -230,15 +230,24 @@ def capture_matte(noises: list[float], counts: np.ndarray | None) -> CaptureMatt
 def matte(observed: np.ndarray, predicted: np.ndarray, disc: np.ndarray,
           cfg: MatteConfig = MatteConfig(), guessed: np.ndarray | None = None,
           capture: CaptureMatte | None = None) -> np.ndarray:
+    """:func:`matte_and_noise` without the noise level."""
+    return matte_and_noise(observed, predicted, disc, cfg, guessed, capture)[0]
+
+
+def matte_and_noise(observed: np.ndarray, predicted: np.ndarray, disc: np.ndarray,
+                    cfg: MatteConfig = MatteConfig(), guessed: np.ndarray | None = None,
+                    capture: CaptureMatte | None = None) -> tuple[np.ndarray, float]:
     """Straight RGBA (H, W, 4) uint8 of the object from ``observed`` (H, W, 3) uint8 and the
     predicted background ``predicted`` (H, W, 3) uint8, inside ``disc`` (H, W) bool.
 
     ``guessed`` (H, W) bool: pixels where the prediction is a guess (colour decides there).
     ``capture``: the second pass's statistics of the whole capture (noise cap, object colours).
+    Also returns the noise level this crop measures (:func:`noise_level`; before any cap), which
+    the second pass's statistics are made of.
     """
     d = colour_distance(observed, predicted, cfg.shift_px)
     outside = ~disc
-    noise = _noise(d, disc)
+    noise = measured = _noise(d, disc)
     if capture is not None:
         noise = min(noise, capture.noise)
     t0 = max(cfg.min_threshold, cfg.low_sigmas * noise)
@@ -269,7 +278,7 @@ def matte(observed: np.ndarray, predicted: np.ndarray, disc: np.ndarray,
         core = _fill_holes(kept.astype(bool))
     alpha = _edge_alpha(observed, predicted, core, cfg.edge_px) * disc
     alpha[alpha < 0.02] = 0
-    return straight_rgba(observed, predicted, alpha)
+    return straight_rgba(observed, predicted, alpha), measured
 
 
 def straight_rgba(observed: np.ndarray, predicted: np.ndarray, alpha: np.ndarray) -> np.ndarray:

@@ -21,6 +21,7 @@ from typing import Callable, Sequence
 
 import cv2
 import numpy as np
+from scipy.special import erf
 
 from .board import BoardSpec
 from .cameras import Intrinsics, invert_rigid, rigid
@@ -276,7 +277,7 @@ def _xjunction(p: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> tuple[np.ndarra
     ex, ey = dx - cx, dy - cy
     s1, c1, s2, c2 = math.sin(t1), math.cos(t1), math.sin(t2), math.cos(t2)
     u1, u2 = (c1 * ey - s1 * ex) / s, (c2 * ey - s2 * ex) / s
-    F1, F2 = 0.5 * (1 + _erf(u1 / math.sqrt(2))), 0.5 * (1 + _erf(u2 / math.sqrt(2)))
+    F1, F2 = 0.5 * (1 + erf(u1 / math.sqrt(2))), 0.5 * (1 + erf(u2 / math.sqrt(2)))
     g1 = np.exp(-0.5 * u1 * u1) / math.sqrt(2 * math.pi) * (1 - 2 * F2) * b
     g2 = np.exp(-0.5 * u2 * u2) / math.sqrt(2 * math.pi) * (1 - 2 * F1) * b
     W = F1 + F2 - 2 * F1 * F2
@@ -284,12 +285,6 @@ def _xjunction(p: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> tuple[np.ndarra
                   -g1 * (c1 * ex + s1 * ey) / s, -g2 * (c2 * ex + s2 * ey) / s,
                   np.ones_like(W), W, -(g1 * u1 + g2 * u2) / s], axis=1)
     return a + b * W, J
-
-
-def _erf(x: np.ndarray) -> np.ndarray:
-    from scipy.special import erf
-
-    return erf(x)
 
 
 def refine_xjunctions(gray: np.ndarray, board: BoardSpec, ids: np.ndarray, corners: np.ndarray,
@@ -475,6 +470,9 @@ def diagnose_no_board(frames: Sequence[np.ndarray], board: BoardSpec) -> str:
 
 
 # --------------------------------------------------------------------------- calibration
+ALL_DIST_TERMS = "k1 k2 p1 p2 k3"   # OpenCV's five-term model (Calibration.dist_terms)
+
+
 @dataclass(frozen=True)
 class Calibration:
     """Intrinsics from board views: RMS reprojection error (px), views used and rejected (names),
@@ -488,7 +486,7 @@ class Calibration:
     fx_std: float = float("nan")
     fy_std: float = float("nan")
     square_pixels: bool = False   # fx = fy was imposed (the corners did not call for two)
-    dist_terms: str = "k1 k2 p1 p2 k3"   # the distortion terms fitted (the others are 0)
+    dist_terms: str = ALL_DIST_TERMS   # the distortion terms fitted (the others are 0)
 
     def to_json(self) -> dict:
         return {**self.intrinsics.to_json(), "rms": round(self.rms, 4),
@@ -610,7 +608,7 @@ def calibrate(dets: Sequence[Detection], board: BoardSpec, width: int, height: i
     # Distortion terms the corners do not call for (the same test; 1-3 dof) stay at 0: a free
     # k3 or decentring (p1, p2) trades off against the principal point. Simplest model first.
     base = flags | cv2.CALIB_USE_INTRINSIC_GUESS | (cv2.CALIB_FIX_ASPECT_RATIO if square else 0)
-    terms = "k1 k2 p1 p2 k3" if not flags & cv2.CALIB_FIX_K3 else "k1 k2 p1 p2"
+    terms = ALL_DIST_TERMS if not flags & cv2.CALIB_FIX_K3 else "k1 k2 p1 p2"
     for extra, zero, crit, name in ((cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K3, [2, 3, 4], 16.27, "k1 k2"),
                                     (cv2.CALIB_FIX_K3, [4], 10.83, "k1 k2 p1 p2"),
                                     (cv2.CALIB_ZERO_TANGENT_DIST, [2, 3], 13.82, "k1 k2 k3")):
@@ -824,7 +822,7 @@ def fill_from_device(poses: Sequence[FramePose], device_c2w: np.ndarray, min_ali
 
 def refine_jointly(dets: Sequence[Detection], poses: Sequence[FramePose], board: BoardSpec,
                    intr: Intrinsics, square_pixels: bool = False,
-                   dist_terms: str = "k1 k2 p1 p2 k3") -> tuple[Intrinsics, list[FramePose], float]:
+                   dist_terms: str = ALL_DIST_TERMS) -> tuple[Intrinsics, list[FramePose], float]:
     """Bundle adjustment with the board corners as known 3D points: intrinsics and every posed
     frame's pose refined together (OpenCV's LM in ``calibrateCamera``, started from the current
     intrinsics and poses; ``square_pixels`` keeps fx/fy as it is). Distortion terms missing from
@@ -903,11 +901,19 @@ def calibrate_footage(source: FootageSource, board: BoardSpec, fps: float | None
     """
     dets = detect_sampled(source, board, fps, DetectorConfig(saddle=precise), workers, tick, total)
     blurry = blurry_mask(np.array([d.sharpness for d in dets]), blur_ratio)
-    views = [d for d, b in zip(dets, blurry) if not b]
+    sharp = [d for d, b in zip(dets, blurry) if not b]
     if precise:
-        views = refine_views(source, select_views(views, board, source.info.width, source.info.height,
-                                                  max_views), board)
-    return calibrate(views, board, source.info.width, source.info.height, max_views, precise=precise)
+        return calibrate_precise(source, sharp, board, max_views)
+    return calibrate(sharp, board, source.info.width, source.info.height, max_views, precise=False)
+
+
+def calibrate_precise(source: FootageSource, dets: Sequence[Detection], board: BoardSpec,
+                      max_views: int) -> Calibration:
+    """:func:`calibrate` (precise) on the ``max_views`` most diverse of ``dets`` (sharp frames of
+    ``source``), their corners re-fitted by :func:`refine_xjunctions` in the full frames."""
+    w, h = source.info.width, source.info.height
+    views = refine_views(source, select_views(dets, board, w, h, max_views), board)
+    return calibrate(views, board, w, h, max_views=max_views)
 
 @dataclass(frozen=True)
 class PoseRun:
@@ -947,10 +953,7 @@ def estimate_poses(source: FootageSource, board: BoardSpec, intr: Intrinsics | N
     calib = None
     if intr is None:
         # Calibrating from the capture itself: every diverse view tightens the focal length.
-        views = select_views([d for d, b in zip(dets, blurry) if not b], board, info.width, info.height,
-                             calib_views)
-        calib = calibrate(refine_views(source, views, board), board, info.width, info.height,
-                          max_views=calib_views)
+        calib = calibrate_precise(source, [d for d, b in zip(dets, blurry) if not b], board, calib_views)
         intr, intr_source = calib.intrinsics, f"calibrated from the footage (RMS {calib.rms:.3f} px)"
     elif (intr.width, intr.height) != (info.width, info.height):
         raise DbbError(f"camera.json is for {intr.width}x{intr.height} but the footage is "
@@ -961,7 +964,7 @@ def estimate_poses(source: FootageSource, board: BoardSpec, intr: Intrinsics | N
     if refine:
         intr, poses, refined_rms = refine_jointly(
             sharp, poses, board, intr, calib is not None and calib.square_pixels,
-            calib.dist_terms if calib is not None else "k1 k2 p1 p2 k3")
+            calib.dist_terms if calib is not None else ALL_DIST_TERMS)
         poses = reject_outliers(poses, pose_cfg)
     if device_c2w is not None:
         poses = fill_from_device(poses, device_c2w)

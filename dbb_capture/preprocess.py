@@ -43,6 +43,7 @@ from .crops import (
     split_by_time,
     temporal_difference,
     up_from_cameras,
+    vote_neighbours,
     voted_rgba,
 )
 from .errors import DbbError, InputError
@@ -55,7 +56,7 @@ from .formats import (
     write_transforms,
 )
 from .io import FootageSource, R3dSource, capture_footage, open_footage
-from .matte import CaptureMatte, MatteConfig, capture_matte, matte, noise_level, sphere_disc, sure_object_counts
+from .matte import CaptureMatte, MatteConfig, capture_matte, matte, sure_object_counts
 from .outputs import atomic_dir, read_json, write_json
 from .poses import DetectorConfig, PoseConfig, PoseRun, estimate_poses
 from .progress import progress
@@ -420,7 +421,6 @@ def _crop_segment(seg: _CropSegment, tick: Callable[[int], None] | None = None) 
         _MODELS[seg.model] = BackgroundModel.load(seg.model)
     model = _MODELS[seg.model]
     sp, out, counts = seg.sphere, [], None
-    disc = sphere_disc(seg.size, seg.fill, seg.matte.disc_margin)
     for f in seg.source.read(sorted(seg.c2w)):
         c2w = seg.c2w[f.index]
         oc = object_crop(f.image, seg.intr, c2w, sp.center, sp.radius, sp.up, seg.size, seg.fill,
@@ -434,8 +434,7 @@ def _crop_segment(seg: _CropSegment, tick: Callable[[int], None] | None = None) 
         np.savez(seg.scratch / f"{f.name}.npz", observed=oc.observed, predicted=oc.predicted,
                  guessed=oc.guessed if oc.guessed is not None else np.zeros(0, bool),
                  inside=oc.inside if oc.inside is not None else np.zeros(0, np.uint8), **extra)
-        out.append(_FirstMatte(f.index, f.name, oc.cam, oc.touches_border,
-                               noise_level(oc.observed, oc.predicted, disc, seg.matte)))
+        out.append(_FirstMatte(f.index, f.name, oc.cam, oc.touches_border, oc.noise))
         tick(1)
     return _FirstPass(out, counts)
 
@@ -465,15 +464,12 @@ def _matte_segment(seg: _MatteSegment, tick: Callable[[int], None] | None = None
         return loaded[fm.index]
 
     mine = {c.index for c in seg.crops}
+    linked = np.array([c.index in seg.follows for c in chain])
     out, prev = [], None
     for k, fm in enumerate(chain):
         if fm.index not in mine:
             continue
-        nb = [fm]
-        if k > 0 and fm.index in seg.follows:
-            nb.append(chain[k - 1])
-        if k + 1 < len(chain) and chain[k + 1].index in seg.follows:
-            nb.append(chain[k + 1])
+        nb = [chain[j] for j in vote_neighbours(k, linked)]
         oc, sheet_frame, _ = load(fm)
         oc = replace(oc, rgba=voted_rgba(oc, [load(c)[2] for c in nb]))
         for i in [i for i in loaded if i < chain[max(0, k - 1)].index]:
