@@ -63,6 +63,8 @@ class DetectorConfig:
     saddle_frac: float = 0.8  # saddle-fit half-window, as a fraction of the square's white margin
     saddle_max: int = 8
     saddle_blur: float = 1.0  # Gaussian sigma (px) applied to the fitted patch
+    upsample_below: float = 2.0  # markers missed and the found ones under this many px per bit:
+    upsample: tuple[float, ...] = (2.0, 3.0)  # ... search the board's region enlarged by these
 
 
 _SCALES = (1.0, 2.0 / 3.0, 0.5, 1.0 / 3.0, 0.25)  # cheap resize factors
@@ -112,8 +114,8 @@ class BoardDetector:
         # INTER_AREA is fast at 1/k (integer k); 2/3 goes through bilinear, which aliases a
         # little, harmless for finding markers (corners are refined at full resolution).
         integer = abs(1.0 / scale - round(1.0 / scale)) < 1e-6
-        small = sub if scale == 1.0 else cv2.resize(
-            sub, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA if integer else cv2.INTER_LINEAR)
+        interp = cv2.INTER_CUBIC if scale > 1.0 else cv2.INTER_AREA if integer else cv2.INTER_LINEAR
+        small = sub if scale == 1.0 else cv2.resize(sub, None, fx=scale, fy=scale, interpolation=interp)
         cc, ci, mc, mi = self._detector(window).detectBoard(small)
         n_markers = 0 if mi is None else int(len(np.ravel(mi)))
         if cc is None or ci is None or len(np.ravel(ci)) == 0:
@@ -146,6 +148,13 @@ class BoardDetector:
                 best = (None, None, max(best[2], got[2]), None)
             if best[0] is not None and len(best[0]) >= 0.8 * self._last_n:
                 break
+        roi = self._roi if best[3] is None else _region(best[1], best[3], (W, H))
+        small = roi is not None and self._small_markers(best[2], best[3])
+        if small:
+            for s in self.cfg.upsample:
+                got = self._detect_in(gray, roi, s)
+                if got[0] is not None and (best[0] is None or len(got[0]) > len(best[0])):
+                    best, used_scale = got, s
         ids, corners, n_markers, mcs = best
         if ids is None:
             self.reset()
@@ -157,6 +166,15 @@ class BoardDetector:
             half = np.clip(np.floor(self.cfg.saddle_frac * corner_margins_px(self.board, ids, corners)),
                            2, self.cfg.saddle_max).astype(np.int64)
             corners, _ = refine_saddles(gray, corners, half, self.cfg.saddle_blur)
+        if small and self.cfg.saddle and len(ids) >= 4:
+            # Far or grazing views: the white margins are 1-2 px, too narrow for the saddle
+            # window (corners 0.1-1.8 px off at 640x480); the X-junction fit reads the squares'
+            # edges instead (0.02 px), and a corner it cannot fit is dropped, not guessed.
+            corners, fitted = refine_xjunctions(gray, self.board, ids, corners)
+            ids, corners = ids[fitted], corners[fitted]
+            if not len(ids):
+                self.reset()
+                return np.zeros(0, np.int32), np.zeros((0, 2)), n_markers
         self._last_n = len(ids)
         # Next frame: the smallest scale that keeps ``px_per_bit`` on all but the smallest
         # quarter of the markers, and a threshold window of ~0.4 marker side at that scale.
@@ -168,12 +186,20 @@ class BoardDetector:
             self._scale_hint = float(np.clip(self.cfg.px_per_bit * bits / side, 0.25, 1.0))
             s = _quantize_scale(self._scale_hint, up=True)
             self._window = int(np.clip(0.4 * np.median(sides) * s, 5, 23)) | 1
-        pts = np.concatenate([corners] + list(mcs or []))
-        lo, hi = pts.min(0), pts.max(0)
-        pad = 0.25 * (hi - lo) + 24
-        self._roi = (int(max(0, lo[0] - pad[0])), int(max(0, lo[1] - pad[1])),
-                     int(min(W, hi[0] + pad[0] + 1)), int(min(H, hi[1] + pad[1] + 1)))
+        self._roi = _region(corners, mcs, (W, H))
         return ids, corners, n_markers
+
+    def _small_markers(self, n_markers: int, marker_corners) -> bool:
+        """Were markers missed because they are imaged too small to read (far or grazing
+        views: a few px per bit)? Then an enlarged image finds them (bilinear/bicubic
+        interpolation lets the adaptive threshold and the bit sampling resolve them)."""
+        if not self.cfg.upsample or n_markers >= len(self._cv_board.getIds()):
+            return False
+        if not marker_corners:
+            return True    # none read at all, in the region where the board last was
+        bits = self._cv_board.getDictionary().markerSize + 2
+        sides = [np.linalg.norm(np.diff(np.vstack([m, m[:1]]), axis=0), axis=1).min() for m in marker_corners]
+        return float(np.median(sides)) / bits < self.cfg.upsample_below
 
     def _refine(self, gray: np.ndarray, corners: np.ndarray, marker_corners, scale: float) -> np.ndarray:
         """cornerSubPix at full resolution, with a window that stays inside the white margin
@@ -189,6 +215,15 @@ class BoardDetector:
         moved = np.linalg.norm(refined - corners, axis=1)
         max_move = max(1.5, 1.0 / scale)
         return np.where((moved < max_move)[:, None], refined.astype(np.float64), corners)
+
+
+def _region(corners: np.ndarray, marker_corners, size: tuple[int, int]) -> tuple[int, int, int, int]:
+    """The board's region (x0, y0, x1, y1) px around found corners (N, 2) and marker corners, padded."""
+    pts = np.concatenate([corners.reshape(-1, 2)] + [np.reshape(m, (-1, 2)) for m in marker_corners or []])
+    lo, hi = pts.min(0), pts.max(0)
+    pad = 0.25 * (hi - lo) + 24
+    return (int(max(0, lo[0] - pad[0])), int(max(0, lo[1] - pad[1])),
+            int(min(size[0], hi[0] + pad[0] + 1)), int(min(size[1], hi[1] + pad[1] + 1)))
 
 
 def corner_margins_px(board: BoardSpec, ids: np.ndarray, corners: np.ndarray) -> np.ndarray:

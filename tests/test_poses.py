@@ -379,3 +379,20 @@ def test_joint_refinement_keeps_the_calibrations_distortion_terms(rendered):
     assert rms < 0.3 and kept.dist[2:] == (0.0, 0.0, 0.0) and kept.fx == pytest.approx(kept.fy)
     free, _, _ = refine_jointly(dets, poses, BOARD, intr)
     assert all(v != 0.0 for v in free.dist)
+
+
+def test_small_grazing_board_is_read_enlarged():
+    """A far, grazing view (markers ~1 px per bit across): OpenCV reads a few markers; the
+    detector searches the board's region enlarged and re-fits the corners as X-junctions."""
+    cfg = SynthConfig(width=480, height=360, board=BOARD, dist=(-0.12, 0.05, 0.0, 0.0, 0.0))
+    rng = np.random.default_rng(3)
+    intr = cfg.intrinsics()
+    c2w = _view_c2w(55, 25, 0.85, BOARD.center)
+    img, _ = Renderer(intr, 2).render(make_scene(cfg, rng), c2w, 0.0)
+    gray = cv2.cvtColor(sensor(img, 0.01, rng), cv2.COLOR_RGB2GRAY)
+    plain = DetectorConfig(upsample=())
+    n_plain = len(BoardDetector(BOARD, plain).detect(gray)[0])
+    ids, corners, _ = BoardDetector(BOARD).detect(gray)
+    assert len(ids) >= max(8, n_plain + 4)
+    err = np.linalg.norm(corners - project_points(BOARD.chessboard_corners()[ids], c2w, intr), axis=1)
+    assert np.median(err) < 0.05 and err.max() < 0.2
