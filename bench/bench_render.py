@@ -4,6 +4,7 @@ docs/benchmarks.md, section "PlenOctree (issue 4)". Run under ``flock /tmp/dbb-b
     python bench/bench_render.py run RUN [RUN ...]   # trees of dbb-train plenoctree run folders
     python bench/bench_render.py shell               # a synthetic opaque-shell tree (no haze)
     python bench/bench_render.py rebake RUN OUT      # RUN's checkpoint baked by the current bake
+    python bench/bench_render.py prune RUN OUT --prune-weight W   # RUN's tree weight-pruned
 
 For a run: straight-RGBA frames/s at 256x256 and 800x800 (all cores) from the first held-out
 camera of its dataset, the best CPU seconds per frame on one thread (other
@@ -28,7 +29,7 @@ import numpy as np
 
 from dbb_capture.cameras import Intrinsics, look_at
 from dbb_capture.datasets import load_dataset, scaled_intrinsics
-from dbb_capture.octree import PlenOctree, TreeRenderer, build_tree
+from dbb_capture.octree import PRUNE_WEIGHT, PlenOctree, TreeRenderer, build_tree
 from dbb_capture.plenoctree import RunConfig, evaluate_views, load_run, mean_of, split_frames
 from common import emit  # bench/ is the script folder: on sys.path
 
@@ -67,31 +68,55 @@ def speeds(r: TreeRenderer, c2w: np.ndarray, base: Intrinsics, repeats: int) -> 
     return out
 
 
-def heldout(run) -> list:
-    """The run dataset's own test views if it marks them (synthetic crops), else every 8th."""
+def split(run) -> tuple[list, list]:
+    """Training and held-out views of a run: the dataset's own test views if it marks them
+    (synthetic crops), else every 8th (as the lego runs were trained)."""
     ds = load_dataset(Path(run.meta["dataset"]))
-    return ds.split("test") or split_frames(ds, RunConfig(holdout_every=8))[1]
+    test = ds.split("test")
+    if test:
+        return [f for f in ds.frames if f.split != "test"], test
+    return split_frames(ds, RunConfig(holdout_every=8))
 
 
-def rebake(run_dir: Path, out: Path) -> dict:
-    """Bake ``run_dir``'s checkpoint with the current :func:`bake` into ``out`` (a run folder
-    sharing the checkpoint, so it can be benchmarked like the original)."""
-    import shutil
+def heldout(run) -> list:
+    return split(run)[1]
 
+
+def rebake(run_dir: Path, out: Path, prune_weight: float) -> dict:
+    """Bake ``run_dir``'s checkpoint with the current :func:`bake` (weight pruning with its
+    training cameras) into ``out`` (a run folder sharing the checkpoint, so it can be
+    benchmarked like the original)."""
     import torch
 
     from dbb_capture.fields import TrainState
     from dbb_capture.octree import bake
 
-    out.mkdir(parents=True, exist_ok=True)
-    shutil.copy(run_dir / "run.json", out / "run.json")
+    run = load_run(run_dir)
     st = TrainState.load(run_dir / "checkpoint.pt", torch.device("cpu"))
     t = time.perf_counter()
-    tree = bake(st.field)
-    seconds = time.perf_counter() - t
+    tree = bake(st.field, cameras=[(f.c2w, f.intr) for f in split(run)[0]], prune_weight=prune_weight)
+    return _write_tree(run_dir, out, tree, time.perf_counter() - t, prune_weight)
+
+
+def prune(run_dir: Path, out: Path, prune_weight: float) -> dict:
+    """``run_dir``'s stored tree weight-pruned (:func:`prune_by_weight`, its training cameras)
+    into the run folder ``out``: the bake's last step alone, so thresholds compare quickly."""
+    from dbb_capture.octree import prune_by_weight
+
+    run = load_run(run_dir)
+    t = time.perf_counter()
+    tree = prune_by_weight(run.tree(), [(f.c2w, f.intr) for f in split(run)[0]], prune_weight)
+    return _write_tree(run_dir, out, tree, time.perf_counter() - t, prune_weight)
+
+
+def _write_tree(run_dir: Path, out: Path, tree: PlenOctree, seconds: float, prune_weight: float) -> dict:
+    import shutil
+
+    out.mkdir(parents=True, exist_ok=True)
+    shutil.copy(run_dir / "run.json", out / "run.json")
     size = tree.save(out / "tree.npz")
-    return {"run": str(run_dir), "out": str(out), "bake_s": seconds, "tree_mb": size / 1e6,
-            "leaves_with_data": tree.n_leaves_with_data()}
+    return {"run": str(run_dir), "out": str(out), "prune_weight": prune_weight, "seconds": seconds,
+            "tree_mb": size / 1e6, "leaves_with_data": tree.n_leaves_with_data()}
 
 
 def bench_run(run_dir: Path, repeats: int, with_psnr: bool, with_torch: bool) -> dict:
@@ -143,18 +168,20 @@ def bench_shell(repeats: int) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("part", choices=["run", "shell", "rebake"])
+    ap.add_argument("part", choices=["run", "shell", "rebake", "prune"])
     ap.add_argument("runs", type=Path, nargs="*",
-                    help="run folders of dbb-train plenoctree (rebake: RUN OUT)")
+                    help="run folders of dbb-train plenoctree (rebake, prune: RUN OUT)")
+    ap.add_argument("--prune-weight", type=float, default=PRUNE_WEIGHT,
+                    help="rebake, prune: drop leaves no training ray gives this weight (0: keep all)")
     ap.add_argument("--repeats", type=int, default=8)
     ap.add_argument("--psnr", action="store_true", help="also held-out PSNR on white")
     ap.add_argument("--torch", action="store_true", help="also time the PyTorch path at 256")
     ap.add_argument("--json", type=Path, default=None, help="also write the figures here")
     a = ap.parse_args(argv)
-    if a.part == "rebake":
+    if a.part in ("rebake", "prune"):
         if len(a.runs) != 2:
-            ap.error("rebake takes RUN OUT")
-        res = [rebake(*a.runs)]
+            ap.error(f"{a.part} takes RUN OUT")
+        res = [(rebake if a.part == "rebake" else prune)(*a.runs, a.prune_weight)]
     elif a.part == "run":
         res = [bench_run(p, a.repeats, a.psnr, a.torch) for p in a.runs]
     else:

@@ -33,6 +33,8 @@ def main() -> None:
 @click.option("--max-points", type=int, default=6_000_000, show_default=True,
               help="Do not refine past this many active lattice points (memory and time on CPU).")
 @click.option("--depth", type=click.IntRange(1, 8), default=None, help="Octree depth (default: match the lattice).")
+@click.option("--prune-weight", type=click.FloatRange(0, 1), default=0.005, show_default=True,
+              help="Bake drops octree leaves that no training ray gives this rendering weight (0: keep all).")
 @click.option("--holdout-every", type=int, default=8, show_default=True,
               help="Without a split in the dataset, every n-th frame is held out for the report (0: none).")
 @click.option("--holdout", "holdout_names", default="", help="Comma-separated frame names (file stems) to hold out.")
@@ -40,7 +42,7 @@ def main() -> None:
 @click.option("--threads", type=click.IntRange(1, 256), default=None,
               help="CPU threads (default: torch's choice; on a machine shared with other jobs 1 is faster).")
 def plenoctree(dataset, out, minutes, steps, downscale, resume, overwrite, mode, sh_degree, res_max,
-               max_points, depth, holdout_every, holdout_names, batch_rays, threads) -> None:
+               max_points, depth, prune_weight, holdout_every, holdout_names, batch_rays, threads) -> None:
     """Static object: train a voxel radiance field on DATASET and bake it into a PlenOctree.
 
     DATASET is a preprocess output (crops.json) or a nerfstudio / instant-ngp / Blender
@@ -55,7 +57,7 @@ def plenoctree(dataset, out, minutes, steps, downscale, resume, overwrite, mode,
 
         torch.set_num_threads(threads)
     names = tuple(n.strip() for n in holdout_names.split(",") if n.strip())
-    cfg = RunConfig(minutes, steps, downscale, mode, holdout_every, names, depth)
+    cfg = RunConfig(minutes, steps, downscale, mode, holdout_every, names, depth, prune_weight)
     fcfg = FieldConfig(sh_degree=sh_degree, res_max=res_max, max_points=max_points, batch_rays=batch_rays,
                        res_start=min(32, res_max))
     run = train_run(dataset, out, cfg, fcfg, resume=resume, overwrite=overwrite)

@@ -215,7 +215,7 @@ def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.n
                leaf_row: np.ndarray, leaf_sigma: np.ndarray, coef: np.ndarray,
                degree: int, sigmoid: bool, t_min: float, w_eps: float, start: int, end: int,
                frame: int, cache: np.ndarray, pixel: np.ndarray, mode: int, bg: np.ndarray,
-               out: np.ndarray, eager: bool) -> None:
+               out: np.ndarray, eager: bool, wmax: np.ndarray) -> None:
     """Colour of rays ``start`` to ``end`` into row ``pixel[r]`` of ``out`` (see :func:`_write`
     for ``mode`` and ``bg``). Releases the GIL: Python threads run disjoint ranges side by side.
 
@@ -240,6 +240,10 @@ def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.n
     The walk only records which rows a ray needs and with what weight (prefetching their
     cache entries), then :func:`_shade` colours them: colour lookups are scattered over tens
     of MB, and a lookup made where the walk finds it stalls the walk for a memory latency.
+
+    With a non-empty ``wmax`` (K,) float32 the rays only record, per data row, the largest
+    weight any of them gave it (above ``w_eps``; what :func:`.octree.prune_by_weight` keeps
+    leaves by) and colour nothing; ``out`` then receives alpha only.
     """
     nb = (degree + 1) * (degree + 1)
     rsz = float(1 << BRICK_SHIFT)
@@ -248,6 +252,7 @@ def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.n
     hcell = np.empty(_MAX_HITS, np.int64)
     hw = np.empty(_MAX_HITS, np.float64)
     cc = cache
+    record = wmax.shape[0] > 0
     wsx, wsy, wsz = 1.0 / (inv[0] * L), 1.0 / (inv[1] * L), 1.0 / (inv[2] * L)   # world per leaf
     for r in range(start, end):
         oi = r if origins.shape[0] > 1 else 0
@@ -311,7 +316,11 @@ def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.n
                 if sg > 0:
                     a = 1.0 - _exp_neg(sg * (min(tn, t_end) - t))
                     w = T * a
-                    if w > w_eps:
+                    if w > w_eps and record:
+                        row = leaf_row[local, 1]
+                        if w > wmax[row]:
+                            wmax[row] = w
+                    elif w > w_eps:
                         row = leaf_row[local, 1]
                         if frame > 0:
                             _prefetch(cc, row)

@@ -34,7 +34,7 @@ from .datasets import (Frame, ObjectVolume, PosedDataset, estimate_volume, holdo
 from .errors import DbbError
 from .fields import (COLOUR_ACTIVATION, Budget, FieldConfig, TrainState, VoxelField, build_ray_bank,
                      frame_tensors, new_field, pick_device, psnr, render_image, train)
-from .octree import PlenOctree, TreeRenderer, bake
+from .octree import PRUNE_WEIGHT, PlenOctree, TreeRenderer, bake
 from .outputs import (atomic_dir, check_run_output, read_json, resume_checkpoint, run_work_dir,
                       training_minutes, write_json)
 from .progress import progress
@@ -53,6 +53,7 @@ class RunConfig:
     holdout_every: int = 8             # when the dataset has no split: every n-th frame is test
     holdout_names: tuple[str, ...] = ()
     depth: int | None = None           # octree depth (None: match the field's lattice)
+    prune_weight: float = PRUNE_WEIGHT  # bake drops leaves no training ray weights this much (0: off)
     max_report_views: int = 8
 
 
@@ -141,7 +142,7 @@ def train_run(dataset: Path, out: Path, cfg: RunConfig, field_cfg: FieldConfig |
         state = train(state, bank, budget, None if quiet else on_step, ckpt)
         prog.update(task, completed=100)
     del bank
-    tree = bake(state.field, cfg.depth)
+    tree = bake(state.field, cfg.depth, cameras=[(f.c2w, f.intr) for f in train_f], prune_weight=cfg.prune_weight)
     with atomic_dir(out, overwrite=True) as tmp:
         nbytes = tree.save(tmp / "tree.npz")
         shutil.copyfile(ckpt, tmp / "checkpoint.pt")
@@ -158,6 +159,7 @@ def train_run(dataset: Path, out: Path, cfg: RunConfig, field_cfg: FieldConfig |
                      "density_units": "per world unit", "depth_limit": tree.depth_limit,
                      "leaf_resolution": 1 << (tree.depth_limit + 1), "nodes": tree.n_nodes,
                      "leaves_with_data": tree.n_leaves_with_data(), "bytes": nbytes,
+                     "prune_weight": cfg.prune_weight,
                      "bounds_note": "leaves outside the object sphere are trimmed"},
             "density_grid": {"file": "density_grid.npz", "units": "per world unit",
                              "layout": "sigma[x, y, z] at cell centres of [bbox_min, bbox_max]"},

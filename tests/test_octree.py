@@ -263,3 +263,56 @@ def test_renderer_works_in_a_forked_child_after_the_parent_rendered(baked):
     with mp.get_context("fork").Pool(1) as pool:
         got = pool.apply_async(_render_in_child, (frames[1].c2w, intr)).get(timeout=60)
     np.testing.assert_array_equal(got, want)
+
+
+def _wall_tree() -> tuple[PlenOctree, dict[str, tuple[int, int, int]]]:
+    """8^3 lattice over [-1, 1]^3 (leaf side 0.25): an opaque wall at z index 3 (x, y 2..5), a
+    leaf behind it, a faint leaf in front of it (alpha 0.002) and a fainter-but-seen one
+    (alpha 0.05); red SH1 colour everywhere."""
+    side = 0.25
+    wall = [(x, y, 3) for x in range(2, 6) for y in range(2, 6)]
+    named = {"hidden": (4, 4, 5), "haze": (4, 4, 1), "faint": (3, 3, 1)}
+    alphas = {"hidden": 0.9, "haze": 0.002, "faint": 0.05}
+    cells = np.array(wall + list(named.values()))
+    sig = [-math.log(1 - 0.99999) / side] * len(wall) + [-math.log(1 - alphas[k]) / side for k in named]
+    vals = np.zeros((len(cells), 4), np.float32)
+    vals[:, 0] = 2.0
+    vals[:, 3] = sig
+    data, child, pd = build_tree(cells, vals, 2)
+    inv = np.full(3, 0.5, np.float32)
+    return PlenOctree(data.astype(np.float16), child, pd, inv, np.full(3, 0.5, np.float32), 2, "SH1"), named
+
+
+def test_weight_pruning_drops_hidden_and_faint_leaves_and_keeps_the_visible_ones():
+    from dbb_capture.cameras import Intrinsics, look_at
+    from dbb_capture.octree import leaf_max_weights, prune_by_weight
+
+    tree, named = _wall_tree()
+    f = 16 / math.tan(math.radians(25))
+    cams = [(look_at(np.array([dx, dy, -3.0]), np.zeros(3), np.array([0.0, -1.0, 0.0])),
+             Intrinsics(32, 32, f, f, 15.5, 15.5)) for dx, dy in ((0.0, 0.0), (0.3, 0.0), (0.0, -0.3))]
+    cells, rows, w = leaf_max_weights(tree, cams, 1e-4)
+    got = {tuple(c): float(x) for c, x in zip(cells, w)}
+    assert got[named["hidden"]] == 0.0                        # behind an opaque wall: never reached
+    assert got[named["haze"]] == pytest.approx(0.002, rel=0.05)  # a ray straight through its middle
+    assert got[named["faint"]] == pytest.approx(0.05, rel=0.05)
+    assert got[(2, 2, 3)] > 0.9
+    pruned = prune_by_weight(tree, cams, 0.01)
+    kept = {tuple(c) for c in leaf_cells(pruned)[0]}
+    assert kept == {c for c in got if c not in (named["hidden"], named["haze"])}
+    # What the cameras see barely changes: at most the dropped haze's 0.002 of a pixel.
+    a, b = TreeRenderer(tree), TreeRenderer(pruned)
+    for c2w, intr in cams:
+        assert np.abs(a.render(c2w, intr)[..., 3] - b.render(c2w, intr)[..., 3]).max() < 0.003
+    assert prune_by_weight(tree, cams, 0.0) is tree
+
+
+def test_bake_with_training_cameras_prunes_without_changing_the_views(baked):
+    frames, vol, state, tree, _ = baked
+    cams = [(f.c2w, f.intr) for f in frames]
+    pruned = bake(state.field, cameras=cams, prune_weight=0.02)
+    assert pruned.n_leaves_with_data() < tree.n_leaves_with_data()
+    a, b = TreeRenderer(tree), TreeRenderer(pruned)
+    for f in frames[:4]:
+        diff = a.render(f.c2w, f.intr, (1.0, 1.0, 1.0)) - b.render(f.c2w, f.intr, (1.0, 1.0, 1.0))
+        assert psnr(float((diff ** 2).mean())) > 30
