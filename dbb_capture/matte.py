@@ -52,6 +52,9 @@ class MatteConfig:
     guided_eps: float = 1e-3
     colour_bins: int = 32          # per channel, of the room/object colour histograms (8 levels a bin)
     colour_ratio: float = 3.0      # where the prediction is a guess: room if its colours explain a pixel this much better
+    sharp_shift: float = 0.25      # share of the prediction's 1-px variation a misregistration may explain (1: off)
+    sharp_room_max: float = 0.02   # the sharper distance is used if it adds at most this share of false room core
+    guess_margin_px: int = 8       # the sharper distance keeps this far from a guessed prediction
 
 
 def sphere_disc(size: int, fill: float, margin: float = 1.0) -> np.ndarray:
@@ -77,6 +80,59 @@ def colour_distance(observed: np.ndarray, predicted: np.ndarray, shift_px: int =
             q = pad[shift_px + dy:shift_px + dy + h, shift_px + dx:shift_px + dx + w]
             np.minimum(best, np.sqrt(((o - q) ** 2).sum(-1)), out=best)
     return best
+
+
+def local_variation(image: np.ndarray, shift_px: int = 1) -> np.ndarray:
+    """Largest colour change (H, W) float32 (0..1 RGB scale) of an RGB image (H, W, 3) uint8 over
+    shifts by up to ``shift_px`` pixels: how much a misregistration that small can change it."""
+    f = image.astype(np.float32) / 255.0
+    pad = cv2.copyMakeBorder(f, shift_px, shift_px, shift_px, shift_px, cv2.BORDER_REPLICATE)
+    h, w = f.shape[:2]
+    out = np.zeros((h, w), np.float32)
+    for dy in range(-shift_px, shift_px + 1):
+        for dx in range(-shift_px, shift_px + 1):
+            q = pad[shift_px + dy:shift_px + dy + h, shift_px + dx:shift_px + dx + w]
+            np.maximum(out, np.sqrt(((f - q) ** 2).sum(-1)), out=out)
+    return out
+
+
+def sharp_distance(observed: np.ndarray, predicted: np.ndarray, shifted: np.ndarray,
+                   share: float, shift_px: int = 1) -> np.ndarray:
+    """A colour distance (H, W) float32 between the robust one and the plain one.
+
+    ``shifted``: :func:`colour_distance` (the minimum over shifts). The minimum over shifts also
+    explains away an object colour close to a textured room's (any of 9 room pixels may match
+    it); here a misregistration may explain only ``share`` of the prediction's own 1-px change
+    (:func:`local_variation`): max(shifted, plain - share * variation). ``share`` 1 gives
+    ``shifted`` back (triangle inequality), 0 the plain distance.
+    """
+    plain = colour_distance(observed, predicted, 0)
+    return np.maximum(shifted, plain - share * local_variation(predicted, shift_px))
+
+
+def _soft_alpha(d: np.ndarray, t0: float, t1: float, disc: np.ndarray, observed: np.ndarray,
+                cfg: MatteConfig) -> np.ndarray:
+    """Soft threshold of the distance ``d`` (H, W) inside ``disc``, raised by its edge-aware smoothing."""
+    alpha = np.clip((d - t0) / (t1 - t0), 0, 1) * disc
+    if cfg.guided_px > 0:
+        # Edge-aware: alpha spreads within regions the image shows as one surface and stops at
+        # its edges, so object areas coloured like the room take the decision of their surroundings.
+        guide = observed.astype(np.float32) / 255.0
+        # Only raised, and only where the colour differs at all (half the low threshold, 1.5
+        # noise sigmas): boundaries stay where the evidence puts them; weak parts inside the
+        # object (a dark limb on a dark table, a stripe of the table's colour) fill in.
+        g = cv2.ximgproc.guidedFilter(guide, alpha.astype(np.float32), cfg.guided_px, cfg.guided_eps) * disc
+        alpha = np.where(d > 0.5 * t0, np.maximum(alpha, g), alpha)
+    return alpha
+
+
+def _room_core(d: np.ndarray, t0: float, t1: float, room: np.ndarray, observed: np.ndarray,
+               cfg: MatteConfig) -> float:
+    """Share of the ``room`` pixels (H, W) bool that the decision would call object (after the
+    opening that cuts specks): how often a distance sees an object where none can be."""
+    core = _soft_alpha(d, t0, t1, np.ones_like(room), observed, cfg) > 0.5
+    core = cv2.morphologyEx(core.astype(np.uint8), cv2.MORPH_OPEN, np.ones((2, 2), np.uint8)).astype(bool)
+    return float((core & room).sum()) / max(int(room.sum()), 1)
 
 
 def _fill_holes(mask: np.ndarray) -> np.ndarray:
@@ -205,11 +261,15 @@ class CaptureMatte:
 
     ``noise``: the capture's median crop noise level (a crop may measure more, never uses more);
     ``object_hist`` (bins,)*3 or None: the object's colours over the capture, from pixels decided
-    object where the prediction is sound (:func:`sure_object_counts`, summed, normalized).
+    object where the prediction is sound (:func:`sure_object_counts`, summed, normalized);
+    ``sharp``: whether the sharper colour distance may be used (:func:`sharp_distance`; off when
+    in the capture's median crop it lit up the room around the sphere: a field that renders the
+    room's texture off by more than a pixel, everywhere, not by chance in one crop).
     """
 
     noise: float
     object_hist: np.ndarray | None = None
+    sharp: bool = True
 
 
 def sure_object_counts(rgba: np.ndarray, guessed: np.ndarray | None, bins: int = 32) -> np.ndarray:
@@ -221,29 +281,35 @@ def sure_object_counts(rgba: np.ndarray, guessed: np.ndarray | None, bins: int =
     return colour_counts(rgba[..., :3][solid], bins)
 
 
-def capture_matte(noises: list[float], counts: np.ndarray | None) -> CaptureMatte:
-    """The capture's statistics from per-crop noise levels and summed object colour counts."""
+def capture_matte(noises: list[float], counts: np.ndarray | None, excesses: list[float] | None = None,
+                  room_max: float = MatteConfig.sharp_room_max) -> CaptureMatte:
+    """The capture's statistics from per-crop noise levels, summed object colour counts and the
+    per-crop false room core the sharper distance adds (:func:`matte_and_noise`; nan: not
+    measured): allowed if its median is at most ``room_max``."""
     hist = normalized_histogram(counts) if counts is not None and counts.sum() >= 50 else None
-    return CaptureMatte(float(np.median(noises)), hist)
+    ex = np.asarray(excesses if excesses is not None else [], float)
+    ex = ex[np.isfinite(ex)]
+    return CaptureMatte(float(np.median(noises)), hist, not (len(ex) and float(np.median(ex)) > room_max))
 
 
 def matte(observed: np.ndarray, predicted: np.ndarray, disc: np.ndarray,
           cfg: MatteConfig = MatteConfig(), guessed: np.ndarray | None = None,
           capture: CaptureMatte | None = None) -> np.ndarray:
-    """:func:`matte_and_noise` without the noise level."""
+    """:func:`matte_and_noise` without the measurements."""
     return matte_and_noise(observed, predicted, disc, cfg, guessed, capture)[0]
 
 
 def matte_and_noise(observed: np.ndarray, predicted: np.ndarray, disc: np.ndarray,
                     cfg: MatteConfig = MatteConfig(), guessed: np.ndarray | None = None,
-                    capture: CaptureMatte | None = None) -> tuple[np.ndarray, float]:
+                    capture: CaptureMatte | None = None) -> tuple[np.ndarray, float, float]:
     """Straight RGBA (H, W, 4) uint8 of the object from ``observed`` (H, W, 3) uint8 and the
     predicted background ``predicted`` (H, W, 3) uint8, inside ``disc`` (H, W) bool.
 
     ``guessed`` (H, W) bool: pixels where the prediction is a guess (colour decides there).
     ``capture``: the second pass's statistics of the whole capture (noise cap, object colours).
-    Also returns the noise level this crop measures (:func:`noise_level`; before any cap), which
-    the second pass's statistics are made of.
+    Also returns what the second pass's statistics are made of: the noise level this crop
+    measures (:func:`noise_level`; before any cap) and the share of the room around the sphere
+    that the sharper distance calls object beyond the robust one (nan: not measured).
     """
     d = colour_distance(observed, predicted, cfg.shift_px)
     outside = ~disc
@@ -252,17 +318,26 @@ def matte_and_noise(observed: np.ndarray, predicted: np.ndarray, disc: np.ndarra
         noise = min(noise, capture.noise)
     t0 = max(cfg.min_threshold, cfg.low_sigmas * noise)
     t1 = max(t0 * 1.5, cfg.high_sigmas * noise)
-    alpha = np.clip((d - t0) / (t1 - t0), 0, 1) * disc
-    if cfg.guided_px > 0:
-        # Edge-aware: alpha spreads within regions the image shows as one surface and stops at
-        # its edges, so object areas coloured like the room take the decision of their surroundings.
-        guide = observed.astype(np.float32) / 255.0
-        # Only raised, and only where the colour differs at all (half the low threshold, 1.5
-        # noise sigmas): boundaries stay where the evidence puts them; weak parts inside the
-        # object (a dark limb on a dark table, a stripe of the table's colour) fill in.
-        g = cv2.ximgproc.guidedFilter(guide, alpha.astype(np.float32), cfg.guided_px, cfg.guided_eps) * disc
-        alpha = np.where(d > 0.5 * t0, np.maximum(alpha, g), alpha)
-    core = alpha > 0.5
+    core = _soft_alpha(d, t0, t1, disc, observed, cfg) > 0.5
+    excess = float("nan")
+    if cfg.sharp_shift < 1 and (capture is None or capture.sharp):
+        # An object part coloured like a textured room (a pale head on a wood table) is lost to
+        # the minimum over shifts; the sharper distance keeps it where the prediction is sound:
+        # away from a guessed prediction, and only in crops where it finds no more object in the
+        # room around the sphere than the robust distance does (a field that renders the room's
+        # texture off by more than a pixel would light it up).
+        ds = sharp_distance(observed, predicted, d, cfg.sharp_shift, cfg.shift_px)
+        sound = np.ones_like(disc)
+        if guessed is not None and guessed.any():
+            k = 2 * cfg.guess_margin_px + 1
+            sound = ~cv2.dilate(guessed.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
+            ds = np.where(sound, ds, d)
+        room = outside & sound
+        if room.sum() > 50:
+            excess = _room_core(ds, t0, t1, room, observed, cfg) - _room_core(d, t0, t1, room, observed, cfg)
+            if excess <= cfg.sharp_room_max:
+                core |= _soft_alpha(ds, t0, t1, disc, observed, cfg) > 0.5
+                d = ds
     if guessed is not None and guessed.any():
         sure_room = (outside | (d <= t0)) & ~guessed
         core &= ~room_by_colour(observed, core & guessed, sure_room, core, cfg.colour_bins, cfg.colour_ratio,
@@ -278,7 +353,7 @@ def matte_and_noise(observed: np.ndarray, predicted: np.ndarray, disc: np.ndarra
         core = _fill_holes(kept.astype(bool))
     alpha = _edge_alpha(observed, predicted, core, cfg.edge_px) * disc
     alpha[alpha < 0.02] = 0
-    return straight_rgba(observed, predicted, alpha), measured
+    return straight_rgba(observed, predicted, alpha), measured, excess
 
 
 def straight_rgba(observed: np.ndarray, predicted: np.ndarray, alpha: np.ndarray) -> np.ndarray:

@@ -7,13 +7,19 @@ import numpy as np
 import pytest
 
 from dbb_capture.crops import crop_camera, cut_crop
+from dataclasses import replace
+
 from dbb_capture.matte import (
     CaptureMatte,
+    MatteConfig,
     capture_matte,
     colour_distance,
+    local_variation,
     matte,
+    matte_and_noise,
     noise_level,
     room_by_colour,
+    sharp_distance,
     sphere_disc,
     sure_object_counts,
     temporal_median,
@@ -178,3 +184,57 @@ def test_temporal_median_outvotes_one_frame():
     missed[2:4, 2:6] = 0                                  # one frame lost the top of the object
     assert np.array_equal(temporal_median([a, missed, a]), a)
     assert np.array_equal(temporal_median([missed, a]), ((a.astype(int) + missed) / 2).round().astype(np.uint8))
+
+
+def _wood_scene(object_colour, shift_rows=0, seed=0):
+    """A smooth wood grain (1-px colour change up to ~0.15), an elliptic object of one colour; the
+    prediction is the grain, ``shift_rows`` rows off."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:64, 0:64]
+    base = np.array([150.0, 100.0, 70.0])
+    room = base + np.sin(2 * np.pi * (yy + 0.3 * xx) / 7.0)[..., None] * np.array([30.0, 20.0, 12.0])
+    obj = (xx - 32) ** 2 / 14 ** 2 + (yy - 32) ** 2 / 18 ** 2 <= 1
+    noisy = lambda im: np.clip(np.round(im + rng.normal(0, 1.5, im.shape)), 0, 255).astype(np.uint8)
+    return noisy(np.where(obj[..., None], object_colour, room)), noisy(np.roll(room, shift_rows, 0)), obj
+
+
+def test_sharp_distance_lies_between_the_robust_and_the_plain_distance():
+    obs, pred, _ = _wood_scene(np.array([162.0, 86.0, 86.0]))
+    robust, plain = colour_distance(obs, pred, 1), colour_distance(obs, pred, 0)
+    assert np.allclose(sharp_distance(obs, pred, robust, 1.0), robust)
+    assert np.allclose(sharp_distance(obs, pred, robust, 0.0), plain)
+    mid = sharp_distance(obs, pred, robust, 0.25)
+    assert (mid >= robust - 1e-6).all() and (mid <= plain + 1e-6).all()
+    flat = np.full_like(pred, 120)
+    assert local_variation(flat).max() == 0
+    assert np.allclose(sharp_distance(obs, flat, colour_distance(obs, flat, 1), 0.25), colour_distance(obs, flat, 0))
+
+
+def test_matte_keeps_a_part_coloured_like_a_textured_room():
+    """An object whose colour the wood grain shows within a pixel (a pale head on a wood table):
+    the minimum over shifts loses it, the sharper distance keeps it."""
+    obs, pred, obj = _wood_scene(np.array([162.0, 86.0, 86.0]))
+    disc = sphere_disc(64, 0.9, 1.04)
+    iou = lambda a: (a & obj).sum() / (a | obj).sum()
+    assert iou(matte(obs, pred, disc, MatteConfig(sharp_shift=1.0))[..., 3] > 127) < 0.6
+    assert iou(matte(obs, pred, disc)[..., 3] > 127) > 0.93
+
+
+def test_sharp_distance_stays_off_where_it_lights_up_the_room():
+    """A prediction two rows off: the sharper distance would call the grain object; per crop it
+    is not used (and its excess is reported), and a capture whose median crop shows that turns it off."""
+    obs, pred, obj = _wood_scene(np.array([40.0, 60.0, 200.0]), shift_rows=2)
+    disc = sphere_disc(64, 0.9, 1.04)
+    rgba, _, excess = matte_and_noise(obs, pred, disc)
+    assert excess > MatteConfig().sharp_room_max
+    assert np.array_equal(rgba, matte(obs, pred, disc, MatteConfig(sharp_shift=1.0)))
+    a = rgba[..., 3] > 127
+    assert (a & obj).sum() / (a | obj).sum() > 0.95
+    assert capture_matte([0.013] * 3, None, [0.0, float("nan"), 0.01]).sharp
+    off = capture_matte([0.013] * 3, None, [0.05, 0.0, 0.04])
+    assert not off.sharp
+    # with the capture's verdict the sharper distance is not even tried: the pale object stays lost
+    obs2, pred2, obj2 = _wood_scene(np.array([162.0, 86.0, 86.0]))
+    assert np.array_equal(matte(obs2, pred2, disc, capture=replace(off, noise=noise_level(obs2, pred2, disc))),
+                          matte(obs2, pred2, disc, MatteConfig(sharp_shift=1.0), capture=CaptureMatte(
+                              noise_level(obs2, pred2, disc))))
