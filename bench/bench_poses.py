@@ -85,9 +85,10 @@ def board_in_view(cams: dict, board: BoardSpec, intr) -> np.ndarray:
 
 
 def accuracy(work: Path, seconds: float, fps: float, cases: list[int] | None = None,
-             seeds: list[int] | None = None) -> None:
+             seeds: list[int] | None = None, refine: bool = True) -> None:
     """``cases``: indices into CASES (repeats allowed), ``seeds``: one per case (default 10 + k,
-    the table's captures; other seeds render further captures with the same settings)."""
+    the table's captures; other seeds render further captures with the same settings);
+    ``refine``: also self-calibrated with ``--refine``."""
     from dbb_capture.synth import SynthConfig, load_ground_truth, write_capture
 
     rows = []
@@ -107,9 +108,10 @@ def accuracy(work: Path, seconds: float, fps: float, cases: list[int] | None = N
         known_run = estimate_poses(src, board, intr)
         known = errors(known_run, cams, board)
         selfcal = {}
-        for refine in (False, True):   # preprocess's default, and with --refine
-            run = estimate_poses(src, board, None, refine=refine)
-            selfcal[refine] = {**errors(run, cams, board), "fx_err_pct": 100 * abs(run.intrinsics.fx / intr.fx - 1)}
+        for r in (False, True) if refine else (False,):   # preprocess's default, and with --refine
+            run = estimate_poses(src, board, None, refine=r)
+            selfcal[r] = {**errors(run, cams, board), "fx_err_pct": 100 * (run.intrinsics.fx / intr.fx - 1)}
+        selfcal.setdefault(True, None)
         in_view = board_in_view(cams, board, intr)
         posed_ids = {p.index for p in known_run.posed}
         posed_in_view = np.mean([i in posed_ids for i in np.flatnonzero(in_view)]) if in_view.any() else float("nan")
@@ -124,7 +126,8 @@ def accuracy(work: Path, seconds: float, fps: float, cases: list[int] | None = N
         print(f"| {name} | {kn['posed']}/{kn['frames']} ({100 * kn['posed'] / kn['frames']:.0f}%) / "
               f"{100 * piv:.0f}% of {n_in} | {kn['rot_med']:.3f} / {kn['rot_p95']:.3f} | "
               f"{kn['trans_med']:.2f} / {kn['trans_p95']:.2f} | "
-              + " | ".join(f"{e['fx_err_pct']:.2f}%, {e['rot_med']:.3f} / {e['rot_p95']:.3f}, {e['trans_med']:.2f}"
+              + " | ".join("-" if e is None else
+                           f"{e['fx_err_pct']:+.3f}%, {e['rot_med']:.3f} / {e['rot_p95']:.3f}, {e['trans_med']:.2f}"
                            for e in (sc[False], sc[True])) + " |")
 
 
@@ -238,11 +241,12 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=4, help="speed: forth-and-back passes.")
     ap.add_argument("--cases", help="accuracy: comma-separated indices into CASES (default all).")
     ap.add_argument("--seeds", help="accuracy: one synth seed per case (default 10 + index).")
+    ap.add_argument("--no-refine", action="store_true", help="accuracy: skip the runs with --refine.")
     a = ap.parse_args()
     a.work.mkdir(parents=True, exist_ok=True)
     if a.what == "accuracy":
         ints = lambda v: None if v is None else [int(x) for x in v.split(",")]   # noqa: E731
-        accuracy(a.work, a.seconds, a.fps, ints(a.cases), ints(a.seeds))
+        accuracy(a.work, a.seconds, a.fps, ints(a.cases), ints(a.seeds), not a.no_refine)
     elif a.what == "calibration":
         calibration(a.work)
     else:
