@@ -352,3 +352,85 @@ def test_prior_first_decodes_the_run_time_first_step_from_a_prior_sample(monkeyp
     assert "energy" in parts
     # The prior is asked at h_1 of the filtering pass (11 filtering steps, 9 open-loop steps, then frame 1).
     assert len(priors) == 11 + 9 + 1 and torch.equal(priors[20], priors[1])
+
+
+def test_view_delta_encodes_the_change_of_viewpoint_since_the_context_frame():
+    torch.manual_seed(0)
+    v1, v0 = torch.rand(5, 3) * 300 - 150, torch.rand(5, 3) * 300 - 150
+    pe1, pe0 = rssm.view_encoding(v1, 4), rssm.view_encoding(v0, 4)
+    d = rssm.view_delta_encoding(pe1, pe0, 4)
+    assert torch.allclose(d, rssm.view_encoding(v1 - v0, 4), atol=1e-5)
+    # In the decoder's input (training and the TorchScript stepper agree).
+    for mode, n_views in (("both", 3), ("relative", 1)):
+        m = rssm.Rssm(replace_cfg(SMALL, decoder_view=mode)).eval()
+        assert m.decoder.fc[0].in_features == 16 + 16 + n_views * 16
+        first, views = torch.rand(1, 4, 32, 32), torch.rand(1, 4, 3) * 60
+        torch.manual_seed(7)
+        eager = rssm.rollout(rssm.Stepper(m), first, views)
+        torch.manual_seed(7)
+        assert torch.allclose(eager, rssm.rollout(rssm.script_stepper(m), first, views), atol=1e-5)
+        assert math.isfinite(rssm.sequence_loss(m, torch.rand(1, 11, 4, 32, 32), torch.rand(1, 11, 3))[0].item())
+    # Relative: turning the context and the current view together tells the decoder nothing new.
+    h, z = torch.randn(5, 16), torch.randn(5, 16)
+    feats = [rssm.decoder_features(h, z, rssm.view_encoding(v1 + turn, 4), rssm.view_encoding(v0 + turn, 4),
+                                   True, "relative", 4) for turn in (torch.zeros(3), torch.tensor([90.0, 0, 0]))]
+    assert torch.allclose(feats[0], feats[1], atol=1e-5)
+    with pytest.raises(DbbError, match="decoder_view"):
+        replace_cfg(SMALL, decoder_view="nope").validate()
+
+
+def test_best_of_k_scores_each_window_by_its_best_sample():
+    # 2 copies x 2 windows x 3 frames of per-pixel errors (4 pixels).
+    err = torch.zeros(2, 2, 3, 4)
+    err[0, 0] = 1.0             # window 0: copy 0 bad, copy 1 perfect
+    err[1, 1] = 2.0             # window 1: copy 1 worse than copy 0
+    err[0, 1] = 0.5
+    assert rssm.best_of(err.flatten(0, 2), 2, 2).item() == pytest.approx((0.0 + 4 * 0.5) / 2)
+    assert rssm.best_of(err[:1].flatten(0, 2), 1, 2).item() == pytest.approx((4 * 1.0 + 4 * 0.5) / 2)
+    torch.manual_seed(0)
+    x, v = torch.rand(2, 11, 4, 32, 32), torch.rand(2, 11, 3) * 40
+    m = rssm.Rssm(replace_cfg(SMALL, open_loop_samples=3))
+    loss, parts = rssm.sequence_loss(m, x, v)
+    assert math.isfinite(loss.item())
+    with pytest.raises(DbbError, match="open_loop_samples"):
+        replace_cfg(SMALL, open_loop_samples=0).validate()
+
+
+def test_filter_decode_prior_decodes_the_filtering_frames_from_prior_samples(monkeypatch):
+    torch.manual_seed(0)
+    x, v = torch.rand(2, 11, 4, 32, 32), torch.rand(2, 11, 3) * 40
+    zs = {}
+    for mode in ("posterior", "prior"):
+        m = rssm.Rssm(replace_cfg(SMALL, filter_decode=mode, open_loop_scale=0.0))
+        with torch.no_grad():           # prior mean +5, posterior mean -5, both std ~min_std
+            for net, mean in ((m.prior, 5.0), (m.post, -5.0)):
+                net[-1].weight.zero_()
+                net[-1].bias[:16] = mean
+                net[-1].bias[16:] = -20.0
+        seen = []
+        real = m.decode
+        monkeypatch.setattr(m, "decode", lambda h, z, *a: seen.append(z) or real(h, z, *a))
+        rssm.sequence_loss(m, x, v)
+        zs[mode] = seen[0]              # the filtering decode comes first
+    assert zs["posterior"].mean().item() == pytest.approx(-5.0, abs=0.2)
+    assert zs["prior"].mean().item() == pytest.approx(5.0, abs=0.2)
+    with pytest.raises(DbbError, match="filter_decode"):
+        replace_cfg(SMALL, filter_decode="nope").validate()
+
+
+def test_augment_mirrors_and_reverses_whole_windows():
+    torch.manual_seed(0)
+    x, v = torch.rand(64, 5, 4, 8, 8), torch.rand(64, 5, 3) * 50
+    y, w = rssm.augment(x, v, "flip", np.random.default_rng(0))
+    flipped = (w[:, 0, 0] != v[:, 0, 0])
+    assert 10 < int(flipped.sum()) < 54                     # about half the windows
+    assert torch.equal(y[flipped], x[flipped].flip(-1)) and torch.equal(w[flipped, :, 0], -v[flipped, :, 0])
+    assert torch.equal(y[~flipped], x[~flipped]) and torch.equal(w[:, :, 1:], v[:, :, 1:])
+    y, w = rssm.augment(x, v, "reverse", np.random.default_rng(1))
+    rev = ~(y == x).flatten(1).all(1)
+    assert 10 < int(rev.sum()) < 54
+    assert torch.equal(y[rev], x[rev].flip(1)) and torch.equal(w[rev], v[rev].flip(1))
+    y, w = rssm.augment(x, v, "none", np.random.default_rng(2))
+    assert torch.equal(y, x) and torch.equal(w, v)
+    with pytest.raises(DbbError, match="augment"):
+        rssm.TrainConfig(augment="flip,spin").validate()
