@@ -132,17 +132,17 @@ def rematte(capture: Path, dataset: Path) -> tuple[Path, Path]:
     model = BackgroundModel.load(dataset / "background" / "field.pt")
     frames = doc["frames"]
     images = {f.index: f.image for f in open_footage(capture / "video.mp4").read(sorted(fr["source_frame"] for fr in frames))}
-    crops, noises, excesses, counts = [], [], [], None
+    crops, noises, details, counts = [], [], [], None
     for fr in frames:
         oc = object_crop(images[fr["source_frame"]], intr, _estimated_c2w(dataset, fr), center, radius, up, size, fill,
                          model.render, cfg, model.guessed)
         crops.append(oc)
         noises.append(oc.noise)
-        excesses.append(oc.sharp_excess)
+        details.append(oc.room_detail)
         if oc.guessed is not None and oc.guessed.any():
             c = sure_object_counts(oc.rgba, oc.guessed, cfg.colour_bins)
             counts = c if counts is None else counts + c
-    cap = capture_matte(noises, counts, excesses, cfg.sharp_room_max)
+    cap = capture_matte(noises, counts, details, cfg.sharp_min_detail)
     alphas = [second(oc, fill, cap, cfg) for oc in crops]
     linked = follows_previous(np.array([fr["time"] for fr in frames]))
     outs = []
@@ -223,7 +223,7 @@ def speed(work: Path, minutes: float) -> None:
     n = 0
     c2ws = []
     t_all = time.monotonic()
-    crops, noises, excesses = [], [], []
+    crops, noises, details = [], [], []
     for f in frames:
         t = time.monotonic()
         d = detect_frames([f], board, DetectorConfig())[0]
@@ -237,13 +237,13 @@ def speed(work: Path, minutes: float) -> None:
         oc = object_crop(f.image, intr, p.c2w, np.array(obj["center"]), obj["radius"], up, 64, 0.9, model.render,
                          guessed=model.guessed)
         noises.append(oc.noise)
-        excesses.append(oc.sharp_excess)
+        details.append(oc.room_detail)
         timings["crop+render+matte"] += time.monotonic() - t
         crops.append(oc)
         n += 1
     # The matte's second pass (capture statistics, matte again, temporal median of 3), per frame.
     t = time.monotonic()
-    capture = capture_matte(noises, None, excesses)
+    capture = capture_matte(noises, None, details)
     alphas = [rematte(oc, 0.9, capture) for oc in crops]
     for k, oc in enumerate(crops):
         voted_rgba(oc, alphas[max(0, k - 1):k + 2])

@@ -267,7 +267,7 @@ class ObjectCrop:
     guessed: np.ndarray | None = None
     inside: np.ndarray | None = None
     noise: float = float("nan")   # the matte's noise level in this crop (:func:`.matte.noise_level`)
-    sharp_excess: float = float("nan")  # false room core the sharper distance adds (:func:`.matte.matte_and_noise`)
+    room_detail: float = float("nan")  # share of the room's detail the prediction keeps (:func:`.matte.room_detail`)
 
 
 def object_crop(image: np.ndarray, src: Intrinsics, c2w: np.ndarray, center: np.ndarray, radius: float,
@@ -286,12 +286,12 @@ def object_crop(image: np.ndarray, src: Intrinsics, c2w: np.ndarray, center: np.
     observed, touched = cut_crop(image, cam, src, c2w)
     predicted = predict(cam)
     guess = guessed(cam) if guessed is not None else None
-    rgba, noise, excess = matte_and_noise(observed, predicted, sphere_disc(size, fill, mcfg.disc_margin), mcfg, guess)
+    rgba, noise, detail = matte_and_noise(observed, predicted, sphere_disc(size, fill, mcfg.disc_margin), mcfg, guess)
     inside = None
     if touched:
         inside = cut_crop(np.full(image.shape[:2], 255, np.uint8), cam, src, c2w)[0].reshape(size, size)
         rgba[..., 3] = np.minimum(rgba[..., 3], inside)
-    return ObjectCrop(cam, observed, predicted, rgba, touched, guess, inside, noise, excess)
+    return ObjectCrop(cam, observed, predicted, rgba, touched, guess, inside, noise, detail)
 
 
 def rematte(oc: ObjectCrop, fill: float, capture, matte_cfg=None) -> np.ndarray:

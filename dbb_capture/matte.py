@@ -55,6 +55,9 @@ class MatteConfig:
     sharp_shift: float = 0.25      # share of the prediction's 1-px variation a misregistration may explain (1: off)
     sharp_room_max: float = 0.02   # the sharper distance is used if it adds at most this share of false room core
     guess_margin_px: int = 8       # the sharper distance keeps this far from a guessed prediction
+    sharp_min_detail: float = 0.8  # ... and needs a field that keeps this share of the room's 1-px detail
+    room_levels: int = 8           # per channel, predicted colours whose room error is measured apart (0: off)
+    room_min_px: int = 20          # room pixels a predicted colour needs for its own noise level
 
 
 def sphere_disc(size: int, fill: float, margin: float = 1.0) -> np.ndarray:
@@ -110,9 +113,10 @@ def sharp_distance(observed: np.ndarray, predicted: np.ndarray, shifted: np.ndar
     return np.maximum(shifted, plain - share * local_variation(predicted, shift_px))
 
 
-def _soft_alpha(d: np.ndarray, t0: float, t1: float, disc: np.ndarray, observed: np.ndarray,
-                cfg: MatteConfig) -> np.ndarray:
-    """Soft threshold of the distance ``d`` (H, W) inside ``disc``, raised by its edge-aware smoothing."""
+def _soft_alpha(d: np.ndarray, t0: float | np.ndarray, t1: float | np.ndarray, disc: np.ndarray,
+                observed: np.ndarray, cfg: MatteConfig) -> np.ndarray:
+    """Soft threshold of the distance ``d`` (H, W) inside ``disc`` (thresholds scalars or per
+    pixel), raised by its edge-aware smoothing."""
     alpha = np.clip((d - t0) / (t1 - t0), 0, 1) * disc
     if cfg.guided_px > 0:
         # Edge-aware: alpha spreads within regions the image shows as one surface and stops at
@@ -126,8 +130,8 @@ def _soft_alpha(d: np.ndarray, t0: float, t1: float, disc: np.ndarray, observed:
     return alpha
 
 
-def _room_core(d: np.ndarray, t0: float, t1: float, room: np.ndarray, observed: np.ndarray,
-               cfg: MatteConfig) -> float:
+def _room_core(d: np.ndarray, t0: float | np.ndarray, t1: float | np.ndarray, room: np.ndarray,
+               observed: np.ndarray, cfg: MatteConfig) -> float:
     """Share of the ``room`` pixels (H, W) bool that the decision would call object (after the
     opening that cuts specks): how often a distance sees an object where none can be."""
     core = _soft_alpha(d, t0, t1, np.ones_like(room), observed, cfg) > 0.5
@@ -249,6 +253,34 @@ def _noise(d: np.ndarray, disc: np.ndarray) -> float:
     return 1.6 * float(np.percentile(ring, 25)) / 0.6745
 
 
+def noise_map(d: np.ndarray, predicted: np.ndarray, room: np.ndarray, noise: float,
+              levels: int = 8, min_px: int = 20, margin: float = 1.0) -> np.ndarray:
+    """Noise level per pixel (H, W) float32 of the colour distance ``d`` (H, W): ``noise``, raised
+    where the prediction shows a colour that the room around the sphere (``room`` (H, W) bool)
+    shows predicted worse than the rest of it (a far wall the field renders as a smooth grey).
+
+    How well a field predicts the room depends on what it predicts (its depth, its texture), so
+    the room pixels are grouped by predicted colour (``levels`` per channel); a group of at least
+    ``min_px`` pixels whose median distance is over ``margin`` times the room's raises ``noise``
+    by that ratio for every pixel predicted in that colour.
+    """
+    out = np.full(d.shape, noise, np.float32)
+    if levels <= 0 or room.sum() < 50:
+        return out
+    q = predicted.astype(np.int32) * levels // 256
+    group = (q[..., 0] * levels + q[..., 1]) * levels + q[..., 2]
+    g, dr = group[room], d[room]
+    typical = max(float(np.median(dr)), 1e-6)
+    order = np.argsort(g, kind="stable")
+    g, dr = g[order], dr[order]
+    ids, start, count = np.unique(g, return_index=True, return_counts=True)
+    for v, a, n in zip(ids, start, count):
+        ratio = float(np.median(dr[a:a + n])) / typical
+        if n >= min_px and ratio > margin:
+            out[group == v] = noise * ratio
+    return out
+
+
 def noise_level(observed: np.ndarray, predicted: np.ndarray, disc: np.ndarray,
                 cfg: MatteConfig = MatteConfig()) -> float:
     """The noise level :func:`matte` measures in one crop (observed, predicted (H, W, 3) uint8)."""
@@ -263,8 +295,8 @@ class CaptureMatte:
     ``object_hist`` (bins,)*3 or None: the object's colours over the capture, from pixels decided
     object where the prediction is sound (:func:`sure_object_counts`, summed, normalized);
     ``sharp``: whether the sharper colour distance may be used (:func:`sharp_distance`; off when
-    in the capture's median crop it lit up the room around the sphere: a field that renders the
-    room's texture off by more than a pixel, everywhere, not by chance in one crop).
+    in the capture's median crop the prediction keeps too little of the room's 1-px detail: a
+    field that renders the room blurred, where a misregistration explains more than it allows).
     """
 
     noise: float
@@ -281,15 +313,25 @@ def sure_object_counts(rgba: np.ndarray, guessed: np.ndarray | None, bins: int =
     return colour_counts(rgba[..., :3][solid], bins)
 
 
-def capture_matte(noises: list[float], counts: np.ndarray | None, excesses: list[float] | None = None,
-                  room_max: float = MatteConfig.sharp_room_max) -> CaptureMatte:
+def capture_matte(noises: list[float], counts: np.ndarray | None, details: list[float] | None = None,
+                  min_detail: float = MatteConfig.sharp_min_detail) -> CaptureMatte:
     """The capture's statistics from per-crop noise levels, summed object colour counts and the
-    per-crop false room core the sharper distance adds (:func:`matte_and_noise`; nan: not
-    measured): allowed if its median is at most ``room_max``."""
+    per-crop share of the room's detail the prediction keeps (:func:`room_detail`; nan: not
+    measured): the sharper distance is allowed if its median is at least ``min_detail``."""
     hist = normalized_histogram(counts) if counts is not None and counts.sum() >= 50 else None
-    ex = np.asarray(excesses if excesses is not None else [], float)
-    ex = ex[np.isfinite(ex)]
-    return CaptureMatte(float(np.median(noises)), hist, not (len(ex) and float(np.median(ex)) > room_max))
+    kept = np.asarray(details if details is not None else [], float)
+    kept = kept[np.isfinite(kept)]
+    return CaptureMatte(float(np.median(noises)), hist, not (len(kept) and float(np.median(kept)) < min_detail))
+
+
+def room_detail(observed: np.ndarray, predicted: np.ndarray, room: np.ndarray) -> float:
+    """Share of the observed room's 1-px detail (:func:`local_variation`, mean over ``room``
+    (H, W) bool) that the prediction shows: ~0.85-0.9 for a well trained field (the sensor's
+    noise is detail the prediction lacks), less for a blurred one; nan with too little room."""
+    if room.sum() < 50:
+        return float("nan")
+    seen = float(local_variation(observed)[room].mean())
+    return float(local_variation(predicted)[room].mean()) / max(seen, 1e-6)
 
 
 def matte(observed: np.ndarray, predicted: np.ndarray, disc: np.ndarray,
@@ -308,24 +350,29 @@ def matte_and_noise(observed: np.ndarray, predicted: np.ndarray, disc: np.ndarra
     ``guessed`` (H, W) bool: pixels where the prediction is a guess (colour decides there).
     ``capture``: the second pass's statistics of the whole capture (noise cap, object colours).
     Also returns what the second pass's statistics are made of: the noise level this crop
-    measures (:func:`noise_level`; before any cap) and the share of the room around the sphere
-    that the sharper distance calls object beyond the robust one (nan: not measured).
+    measures (:func:`noise_level`; before any cap) and the share of the room's detail around the
+    sphere that the prediction keeps (:func:`room_detail`).
     """
     d = colour_distance(observed, predicted, cfg.shift_px)
     outside = ~disc
+    sound_room = outside & ~guessed if guessed is not None else outside
     noise = measured = _noise(d, disc)
     if capture is not None:
         noise = min(noise, capture.noise)
-    t0 = max(cfg.min_threshold, cfg.low_sigmas * noise)
-    t1 = max(t0 * 1.5, cfg.high_sigmas * noise)
+    # Thresholds per pixel: where the room around the sphere shows that the field predicts this
+    # colour worse (a far wall, the table's edge), a larger difference is needed.
+    levels = noise_map(d, predicted, sound_room, noise, cfg.room_levels, cfg.room_min_px)
+    t0 = np.maximum(cfg.min_threshold, cfg.low_sigmas * levels)
+    t1 = np.maximum(t0 * 1.5, cfg.high_sigmas * levels)
     core = _soft_alpha(d, t0, t1, disc, observed, cfg) > 0.5
-    excess = float("nan")
+    detail = room_detail(observed, predicted, sound_room)
     if cfg.sharp_shift < 1 and (capture is None or capture.sharp):
         # An object part coloured like a textured room (a pale head on a wood table) is lost to
         # the minimum over shifts; the sharper distance keeps it where the prediction is sound:
-        # away from a guessed prediction, and only in crops where it finds no more object in the
-        # room around the sphere than the robust distance does (a field that renders the room's
-        # texture off by more than a pixel would light it up).
+        # away from a guessed prediction, in a capture whose field keeps the room's detail, and
+        # only in crops where it finds no more object in the room around the sphere than the
+        # robust distance does (a field that renders the room's texture off by more than a pixel
+        # would light it up).
         ds = sharp_distance(observed, predicted, d, cfg.sharp_shift, cfg.shift_px)
         sound = np.ones_like(disc)
         if guessed is not None and guessed.any():
@@ -333,11 +380,10 @@ def matte_and_noise(observed: np.ndarray, predicted: np.ndarray, disc: np.ndarra
             sound = ~cv2.dilate(guessed.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
             ds = np.where(sound, ds, d)
         room = outside & sound
-        if room.sum() > 50:
-            excess = _room_core(ds, t0, t1, room, observed, cfg) - _room_core(d, t0, t1, room, observed, cfg)
-            if excess <= cfg.sharp_room_max:
-                core |= _soft_alpha(ds, t0, t1, disc, observed, cfg) > 0.5
-                d = ds
+        if room.sum() > 50 and (_room_core(ds, t0, t1, room, observed, cfg)
+                                - _room_core(d, t0, t1, room, observed, cfg)) <= cfg.sharp_room_max:
+            core |= _soft_alpha(ds, t0, t1, disc, observed, cfg) > 0.5
+            d = ds
     if guessed is not None and guessed.any():
         sure_room = (outside | (d <= t0)) & ~guessed
         core &= ~room_by_colour(observed, core & guessed, sure_room, core, cfg.colour_bins, cfg.colour_ratio,
@@ -353,7 +399,7 @@ def matte_and_noise(observed: np.ndarray, predicted: np.ndarray, disc: np.ndarra
         core = _fill_holes(kept.astype(bool))
     alpha = _edge_alpha(observed, predicted, core, cfg.edge_px) * disc
     alpha[alpha < 0.02] = 0
-    return straight_rgba(observed, predicted, alpha), measured, excess
+    return straight_rgba(observed, predicted, alpha), measured, detail
 
 
 def straight_rgba(observed: np.ndarray, predicted: np.ndarray, alpha: np.ndarray) -> np.ndarray:

@@ -372,7 +372,7 @@ class _FirstMatte:
     cam: Any
     touches_border: bool
     noise: float                 # the matte's noise level in this crop
-    sharp_excess: float = float("nan")  # false room core its sharper colour distance adds (nan: not measured)
+    room_detail: float = float("nan")  # share of the room's detail the prediction keeps (nan: not measured)
 
 
 @dataclass(frozen=True)
@@ -435,7 +435,7 @@ def _crop_segment(seg: _CropSegment, tick: Callable[[int], None] | None = None) 
         np.savez(seg.scratch / f"{f.name}.npz", observed=oc.observed, predicted=oc.predicted,
                  guessed=oc.guessed if oc.guessed is not None else np.zeros(0, bool),
                  inside=oc.inside if oc.inside is not None else np.zeros(0, np.uint8), **extra)
-        out.append(_FirstMatte(f.index, f.name, oc.cam, oc.touches_border, oc.noise, oc.sharp_excess))
+        out.append(_FirstMatte(f.index, f.name, oc.cam, oc.touches_border, oc.noise, oc.room_detail))
         tick(1)
     return _FirstPass(out, counts)
 
@@ -523,7 +523,7 @@ def crops_stage(ctx: StageContext, bg: BackgroundOutput) -> CropsOutput:
         crops = [c for part in first for c in part.crops]
         counts = [p.object_counts for p in first if p.object_counts is not None]
         capture = capture_matte([c.noise for c in crops], sum(counts) if counts else None,
-                                [c.sharp_excess for c in crops], cfg.matte.sharp_room_max)
+                                [c.room_detail for c in crops], cfg.matte.sharp_min_detail)
         task = prog.add_task("second matte", total=len(posed), info="")
         linked = follows_previous(np.array([p.time for p in posed]))
         follows = frozenset(i for i, f in zip(indices, linked) if f)
