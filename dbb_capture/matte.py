@@ -88,15 +88,16 @@ def colour_distance(observed: np.ndarray, predicted: np.ndarray, shift_px: int =
 def local_variation(image: np.ndarray, shift_px: int = 1) -> np.ndarray:
     """Largest colour change (H, W) float32 (0..1 RGB scale) of an RGB image (H, W, 3) uint8 over
     shifts by up to ``shift_px`` pixels: how much a misregistration that small can change it."""
-    f = image.astype(np.float32) / 255.0
-    pad = cv2.copyMakeBorder(f, shift_px, shift_px, shift_px, shift_px, cv2.BORDER_REPLICATE)
-    h, w = f.shape[:2]
+    h, w = image.shape[:2]
+    pad = cv2.copyMakeBorder(image.astype(np.float32) / 255.0, shift_px, shift_px, shift_px, shift_px,
+                             cv2.BORDER_REPLICATE).transpose(2, 0, 1)     # channels first: sums of 3 planes
+    f = pad[:, shift_px:shift_px + h, shift_px:shift_px + w]
     out = np.zeros((h, w), np.float32)
     for dy in range(-shift_px, shift_px + 1):
         for dx in range(-shift_px, shift_px + 1):
-            q = pad[shift_px + dy:shift_px + dy + h, shift_px + dx:shift_px + dx + w]
-            np.maximum(out, np.sqrt(((f - q) ** 2).sum(-1)), out=out)
-    return out
+            e = f - pad[:, shift_px + dy:shift_px + dy + h, shift_px + dx:shift_px + dx + w]
+            np.maximum(out, e[0] * e[0] + e[1] * e[1] + e[2] * e[2], out=out)
+    return np.sqrt(out)
 
 
 def sharp_distance(observed: np.ndarray, predicted: np.ndarray, shifted: np.ndarray,
@@ -274,9 +275,10 @@ def noise_map(d: np.ndarray, predicted: np.ndarray, room: np.ndarray, noise: flo
     order = np.argsort(g, kind="stable")
     g, dr = g[order], dr[order]
     ids, start, count = np.unique(g, return_index=True, return_counts=True)
-    for v, a, n in zip(ids, start, count):
+    big = count >= min_px
+    for v, a, n in zip(ids[big], start[big], count[big]):
         ratio = float(np.median(dr[a:a + n])) / typical
-        if n >= min_px and ratio > margin:
+        if ratio > margin:
             out[group == v] = noise * ratio
     return out
 
@@ -365,7 +367,8 @@ def matte_and_noise(observed: np.ndarray, predicted: np.ndarray, disc: np.ndarra
     t0 = np.maximum(cfg.min_threshold, cfg.low_sigmas * levels)
     t1 = np.maximum(t0 * 1.5, cfg.high_sigmas * levels)
     core = _soft_alpha(d, t0, t1, disc, observed, cfg) > 0.5
-    detail = room_detail(observed, predicted, sound_room)
+    # (the second pass does not need it again)
+    detail = room_detail(observed, predicted, sound_room) if capture is None else float("nan")
     if cfg.sharp_shift < 1 and (capture is None or capture.sharp):
         # An object part coloured like a textured room (a pale head on a wood table) is lost to
         # the minimum over shifts; the sharper distance keeps it where the prediction is sound:
