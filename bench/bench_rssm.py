@@ -86,6 +86,22 @@ def evaluate(run: Path, dataset: Path, still: dict | None, temperature: float, n
             "report": str(run / name)}
 
 
+def train_test_gap(run: Path, dataset: Path, temperature: float, windows: int = 40) -> dict:
+    """Mean open-loop PSNR gain over copy-first on training windows and on held-out ones (dB).
+
+    A model that fits its training windows far better than held-out ones has learned which pose
+    goes with which training view and window, not how the toy moves.
+    """
+    model = rssm.load_model(run)
+    data = rssm.load_sequences(dataset, model.cfg.size)
+    out = {}
+    for split in ("train", "test"):
+        sub = replace(data, windows=[(s, "test") for s, sp in data.windows if sp == split])
+        rep, _ = rssm.evaluate(rssm.Stepper(model, temperature), sub, max_windows=windows, rollout_steps=3)
+        out[split] = round(rep.mean("psnr", "model") - rep.mean("psnr", "copy_first"), 3)
+    return out
+
+
 def overrides(pairs: list[str]) -> tuple[rssm.RssmConfig, rssm.TrainConfig]:
     """Model and training settings from ``name=value`` pairs (fields of RssmConfig / TrainConfig)."""
     cfg, tcfg = rssm.RssmConfig(), rssm.TrainConfig()
@@ -141,6 +157,7 @@ def quality(dataset: Path, run: Path, capture: Path | None, minutes: float, step
     if still is not None:
         name = f"report-still-t{temperature:g}" + ("" if start_frame is None else f"-from{start_frame}")
         out["still_view_eval"] = evaluate(run, dataset, still, temperature, name)
+        out["gain_vs_copy_first_train_test"] = train_test_gap(run, dataset, temperature)
         if capture is None:
             k = still["frame"]
             out["still_view_eval"]["motion"]["truth_source"] = f"the footage itself, frames {k + 1}-{k + 150}"

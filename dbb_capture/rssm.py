@@ -91,7 +91,7 @@ class RssmConfig:
     decode_frames: int = 10        # frames decoded per window in each branch (a random subset of a
                                    # longer window: the transition runs the whole window, the decoder,
                                    # which costs most, only this many frames)
-    filter_decode: str = "posterior"  # the filtering reconstruction decodes frame t from "posterior" z_t
+    filter_decode: str = "prior"   # the filtering reconstruction decodes frame t from "posterior" z_t
                                    # (it has seen frame t) or from a "prior" sample at h_t (as it runs:
                                    # the generator cannot draw frames out of a z that has seen them)
     rec_scale: float = 1.0         # weight of the filtering reconstruction
@@ -120,7 +120,8 @@ class RssmConfig:
     @classmethod
     def from_json(cls, d: dict) -> RssmConfig:
         names = {f.name for f in fields(cls)}
-        d = {"skip": False, "compose": "blend", **d}   # runs written before the skip path / copy3 had none
+        # Runs written before the skip path / copy3 / filter_decode had none.
+        d = {"skip": False, "compose": "blend", "filter_decode": "posterior", **d}
         return cls(**{k: v for k, v in d.items() if k in names})
 
 

@@ -390,7 +390,7 @@ def test_best_of_k_scores_each_window_by_its_best_sample():
     torch.manual_seed(0)
     x, v = torch.rand(2, 11, 4, 32, 32), torch.rand(2, 11, 3) * 40
     m = rssm.Rssm(replace_cfg(SMALL, open_loop_samples=3))
-    loss, parts = rssm.sequence_loss(m, x, v)
+    loss, _ = rssm.sequence_loss(m, x, v)
     assert math.isfinite(loss.item())
     with pytest.raises(DbbError, match="open_loop_samples"):
         replace_cfg(SMALL, open_loop_samples=0).validate()
@@ -408,8 +408,7 @@ def test_filter_decode_prior_decodes_the_filtering_frames_from_prior_samples(mon
                 net[-1].bias[:16] = mean
                 net[-1].bias[16:] = -20.0
         seen = []
-        real = m.decode
-        monkeypatch.setattr(m, "decode", lambda h, z, *a: seen.append(z) or real(h, z, *a))
+        monkeypatch.setattr(m, "decode", lambda h, z, *a, seen=seen, real=m.decode: seen.append(z) or real(h, z, *a))
         rssm.sequence_loss(m, x, v)
         zs[mode] = seen[0]              # the filtering decode comes first
     assert zs["posterior"].mean().item() == pytest.approx(-5.0, abs=0.2)
