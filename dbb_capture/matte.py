@@ -5,9 +5,13 @@ looks like behind the object in a crop camera; the matte is where the observatio
 
     d      = robust colour distance(observed, predicted)  (min over 1-px shifts of the prediction,
              so a slightly blurred or misaligned prediction does not light up edges)
-    alpha  = soft threshold of d (thresholds from the noise level measured outside the object)
-             restricted to the projected bounding sphere, raised by its edge-aware (guided,
-             the observed crop as guide) smoothing where d shows any difference,
+    alpha  = soft threshold of d (thresholds from the noise level measured outside the object,
+             raised per pixel for predicted colours the room around the object shows predicted
+             worse) restricted to the projected bounding sphere, raised by its edge-aware (guided,
+             the observed crop as guide) smoothing where d shows any difference; where the
+             prediction is sound, also the decisions of a sharper distance (a misregistration
+             explains only part of a 1-px shift's change, so an object colour that a textured
+             room shows within a pixel is not explained away),
     then     morphology (an opening cuts specks and thin misregistration lines apart, small
              pieces are dropped, the object's thin parts grow back from what is kept, holes
              are filled), fractional alpha at the edges from the
