@@ -18,6 +18,10 @@ fast path over 2 spawned processes. Prints Markdown rows for docs/benchmarks.md.
     # further captures with the same settings, other seeds:
     flock -s /tmp/dbb-bench.lock .venv/bin/python bench/bench_poses.py accuracy --work /tmp/dbb-bench-poses \
         --cases 4,4,4,0,1 --seeds 60,61,62,63,64
+    flock -s /tmp/dbb-bench.lock .venv/bin/python bench/bench_poses.py accuracy --work /tmp/dbb-bench-poses \
+        --cases 2,3 --seeds 65,66
+    flock -s /tmp/dbb-bench.lock .venv/bin/python bench/bench_poses.py accuracy --work /tmp/dbb-bench-poses-10s \
+        --seconds 10 --cases 4,0 --seeds 40,41
 """
 
 from __future__ import annotations
