@@ -28,8 +28,8 @@ import torch
 from dbb_capture import rssm
 
 
-def speed(size: int, steps: int = 300) -> dict:
-    model = rssm.Rssm(rssm.RssmConfig(size=size)).eval()
+def speed(size: int, steps: int = 300, settings: list[str] = ()) -> dict:
+    model = rssm.Rssm(replace(overrides(list(settings))[0], size=size)).eval()
     ts = rssm.script_stepper(model)
     with torch.no_grad():
         h, z = ts.start(torch.rand(1, 4, size, size), torch.tensor([[30.0, 40.0, 0.7]]))
@@ -170,6 +170,8 @@ def main() -> None:
     s = sub.add_parser("speed")
     s.add_argument("--threads", type=int, default=2)
     s.add_argument("--sizes", default="64,256")
+    s.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                   help="a RssmConfig setting other than its default (repeatable)")
     q = sub.add_parser("quality")
     q.add_argument("dataset", type=Path, help="a dbb-capture preprocess output (crops.json)")
     q.add_argument("--run", type=Path, required=True, help="run folder to write (or read with --no-train)")
@@ -190,7 +192,7 @@ def main() -> None:
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     if a.cmd == "speed":
-        out = [speed(int(s)) for s in a.sizes.split(",")]
+        out = [{**speed(int(s), settings=a.set), "settings": a.set} for s in a.sizes.split(",")]
     else:
         out = quality(a.dataset, a.run, a.capture, a.minutes, a.steps, a.batch, a.lr, a.temperature, not a.no_train,
                       a.set, a.start_frame, a.resume)

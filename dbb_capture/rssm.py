@@ -91,7 +91,7 @@ class RssmConfig:
     decode_frames: int = 10        # frames decoded per window in each branch (a random subset of a
                                    # longer window: the transition runs the whole window, the decoder,
                                    # which costs most, only this many frames)
-    filter_decode: str = "prior"   # the filtering reconstruction decodes frame t from "posterior" z_t
+    filter_decode: str = "posterior"  # the filtering reconstruction decodes frame t from "posterior" z_t
                                    # (it has seen frame t) or from a "prior" sample at h_t (as it runs:
                                    # the generator cannot draw frames out of a z that has seen them)
     rec_scale: float = 1.0         # weight of the filtering reconstruction
