@@ -69,13 +69,9 @@ def speeds(r: TreeRenderer, c2w: np.ndarray, base: Intrinsics, repeats: int) -> 
 
 
 def split(run) -> tuple[list, list]:
-    """Training and held-out views of a run: the dataset's own test views if it marks them
-    (synthetic crops), else every 8th (as the lego runs were trained)."""
-    ds = load_dataset(Path(run.meta["dataset"]))
-    test = ds.split("test")
-    if test:
-        return [f for f in ds.frames if f.split != "test"], test
-    return split_frames(ds, RunConfig(holdout_every=8))
+    """Training and held-out views of a run: the dataset's own split if it has one (synthetic
+    crops), else every 8th held out (as the lego runs were trained)."""
+    return split_frames(load_dataset(Path(run.meta["dataset"])), RunConfig(holdout_every=8))
 
 
 def heldout(run) -> list:

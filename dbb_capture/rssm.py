@@ -361,13 +361,15 @@ def premultiply(rgba: torch.Tensor) -> torch.Tensor:
     return torch.cat([rgba[..., :3, :, :] * rgba[..., 3:4, :, :], rgba[..., 3:4, :, :]], -3)
 
 
-def _rec_loss(pred_pm: torch.Tensor, target_pm: torch.Tensor, weight: torch.Tensor | None = None) -> torch.Tensor:
-    """Squared error summed over pixels (Gaussian, unit variance), mean over frames; ``weight``
-    (N, 1, S, S) scales each pixel's error."""
+def _pixel_err(pred_pm: torch.Tensor, target_pm: torch.Tensor, weight: torch.Tensor | None = None) -> torch.Tensor:
+    """Squared error per pixel (N, 4, S, S); ``weight`` (N, 1, S, S) scales each pixel's error."""
     err = (pred_pm - target_pm) ** 2
-    if weight is not None:
-        err = err * weight
-    return err.flatten(1).sum(1).mean()
+    return err if weight is None else err * weight
+
+
+def _rec_loss(pred_pm: torch.Tensor, target_pm: torch.Tensor, weight: torch.Tensor | None = None) -> torch.Tensor:
+    """Squared error summed over pixels (Gaussian, unit variance), mean over frames (see :func:`_pixel_err`)."""
+    return _pixel_err(pred_pm, target_pm, weight).flatten(1).sum(1).mean()
 
 
 def motion_weights(x: torch.Tensor, scale: float) -> torch.Tensor:
@@ -488,11 +490,8 @@ def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[to
         dh, dz = torch.cat([h1[:, None], dh], 1), torch.cat([z1[:, None], dz], 1)
         di, n0 = torch.cat([di.new_ones(1), di]), 1
     ol_x = decode(dh, dz, di, K)
-    target = x[:, di].flatten(0, 1).repeat(K, 1, 1, 1)
-    err = (ol_x - target) ** 2
-    if w is not None:
-        err = err * w[:, di].flatten(0, 1).repeat(K, 1, 1, 1)
-    ol = best_of(err, K, B)
+    copies = lambda a: a[:, di].flatten(0, 1).repeat(K, 1, 1, 1)
+    ol = best_of(_pixel_err(ol_x, copies(x), None if w is None else copies(w)), K, B)
     loss = cfg.rec_scale * rec + cfg.kl_scale * kl + cfg.overshoot_scale * overshoot + cfg.open_loop_scale * ol
     parts = {"loss": loss.item(), "rec": rec.item(), "open_loop": ol.item(), "kl_dyn": dyn.item(),
              "kl_rep": torch.stack(kl_rep).mean().item(), "overshoot": overshoot.item()}
