@@ -216,6 +216,11 @@ class CropRecord:
     split: str
     touches_border: bool = False
     mask_path: str | None = None
+    # The observed crop (RGB) and the background predicted there (RGB), e.g.
+    # "crops_observed/00012.png", "crops_background/00012.png": what the matte was cut from,
+    # so training can composite over the predicted room instead of trusting the matte alone.
+    observed_path: str | None = None
+    background_path: str | None = None
 
     def to_json(self) -> dict:
         from .cameras import opengl_from_opencv
@@ -229,6 +234,9 @@ class CropRecord:
              "touches_border": self.touches_border}
         if self.mask_path:
             d["mask_path"] = self.mask_path
+        if self.observed_path and self.background_path:
+            d["observed_path"] = self.observed_path
+            d["background_path"] = self.background_path
         return d
 
 

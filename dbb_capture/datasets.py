@@ -42,6 +42,10 @@ class Frame:
     split: str = "train"          # "train" or "test"
     mask_path: Path | None = None
     time: float | None = None
+    # Preprocess crops only: the observed crop and the room predicted behind it (RGB images the
+    # matte was cut from), so training can composite over the predicted room (:mod:`.fields`).
+    observed_path: Path | None = None
+    background_path: Path | None = None
 
 
 @dataclass(frozen=True)
@@ -180,8 +184,12 @@ def load_dataset(path: Path) -> PosedDataset:
         split = str(f.get("split", "train"))
         if split not in ("train", "test"):
             raise InputError(f"{where}: split must be train or test, not {split!r}")
+        seen = room = None
+        if f.get("observed_path") and f.get("background_path"):
+            seen = _resolve_image(root, str(f["observed_path"]), where)
+            room = _resolve_image(root, str(f["background_path"]), where)
         frames.append(Frame(Path(f["file_path"]).stem, img, opencv_from_opengl(m), intr, split, mask,
-                            float(f["time"]) if f.get("time") is not None else None))
+                            float(f["time"]) if f.get("time") is not None else None, seen, room))
     rgba = (kind in ("crops", "blender") or any(fr.mask_path is not None for fr in frames)
             or _has_alpha(frames[0].image_path))
     volume = _read_volume(meta, root)
@@ -276,6 +284,23 @@ def load_rgba(frame: Frame, downscale: float = 1.0) -> np.ndarray:
     a = rgba[..., 3:4]
     rgb = np.where(a > 1e-6, rgba[..., :3] / np.maximum(a, 1e-6), 0.0)
     return np.ascontiguousarray(np.concatenate([np.clip(rgb, 0, 1), a], -1), dtype=np.float32)
+
+
+def load_rgb(path: Path, intr: Intrinsics, downscale: float = 1.0) -> np.ndarray:
+    """An RGB image float32 (h, w, 3) in [0, 1] of a frame with intrinsics ``intr``, at
+    1/``downscale`` size (area-averaged), e.g. a crop's observed pixels or predicted room."""
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise InputError(f"cannot read image {path}")
+    if (img.shape[1], img.shape[0]) != (intr.width, intr.height):
+        raise InputError(f"{path}: image is {img.shape[1]}x{img.shape[0]}, dataset says {intr.width}x{intr.height}")
+    rgb = img[..., ::-1].astype(np.float32) / 255.0
+    if downscale != 1:
+        target = scaled_intrinsics(intr, downscale)
+        rgb = cv2.resize(rgb, (target.width, target.height), interpolation=cv2.INTER_AREA)
+    return np.ascontiguousarray(rgb, dtype=np.float32)
 
 
 def frame_rays(intr: Intrinsics, c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -465,6 +465,8 @@ def _matte_segment(seg: _MatteSegment, tick: Callable[[int], None] | None = None
         return loaded[fm.index]
 
     mine = {c.index for c in seg.crops}
+    for sub in ("crops_observed", "crops_background"):
+        (seg.out / sub).mkdir(exist_ok=True)
     linked = np.array([c.index in seg.follows for c in chain])
     out, prev = [], None
     for k, fm in enumerate(chain):
@@ -476,6 +478,9 @@ def _matte_segment(seg: _MatteSegment, tick: Callable[[int], None] | None = None
         for i in [i for i in loaded if i < chain[max(0, k - 1)].index]:
             del loaded[i]                                  # keep the sliding window small
         _write_png(seg.out / f"crops/{fm.name}.png", cv2.cvtColor(oc.rgba, cv2.COLOR_RGBA2BGRA))
+        if not oc.touches_border:       # past the border the observed crop is padding, not the room
+            _write_png(seg.out / f"crops_observed/{fm.name}.png", cv2.cvtColor(oc.observed, cv2.COLOR_RGB2BGR))
+            _write_png(seg.out / f"crops_background/{fm.name}.png", cv2.cvtColor(oc.predicted, cv2.COLOR_RGB2BGR))
         _write_png(seg.out / f"masks/{fm.name}.png",
                    alpha_in_frame(oc.rgba[..., 3], oc.cam, seg.frame_intr, seg.c2w[fm.index]))
         row = _sheet_tiles(sheet_frame, oc, prev) if sheet_frame is not None else None
@@ -486,7 +491,10 @@ def _matte_segment(seg: _MatteSegment, tick: Callable[[int], None] | None = None
 
 
 def crops_stage(ctx: StageContext, bg: BackgroundOutput) -> CropsOutput:
-    """Every posed frame -> RGBA crop; writes crops/, masks/, crops.json, dataset.json, contact_sheet.png.
+    """Every posed frame -> RGBA crop; writes crops/, masks/, crops.json, dataset.json,
+    contact_sheet.png, and crops_observed/ and crops_background/ (the observed crop and the room
+    predicted there, RGB: what the matte was cut from; referenced per frame in crops.json, except
+    for crops past the frame's border).
 
     Two passes (:mod:`.matte`): the first crops, predicts and mattes every frame and learns the
     capture's statistics; the second mattes again with them and votes over neighbouring frames.
@@ -538,7 +546,9 @@ def crops_stage(ctx: StageContext, bg: BackgroundOutput) -> CropsOutput:
         parts2 = run(_matte_segment, segs, task)
     shutil.rmtree(scratch)
     results = [r for part in parts2 for r in part]
-    records = [CropRecord(f"crops/{p.name}.png", r.cam, p.index, p.time, str(sp), r.touches_border)
+    records = [CropRecord(f"crops/{p.name}.png", r.cam, p.index, p.time, str(sp), r.touches_border,
+                          **({} if r.touches_border else {"observed_path": f"crops_observed/{p.name}.png",
+                                                          "background_path": f"crops_background/{p.name}.png"}))
                for p, sp, r in zip(posed, splits, results)]
     coverage = [r.coverage for r in results]
     sheet_rows = [r.sheet_row for r in results if r.sheet_row is not None]
