@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Iterable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -43,7 +43,8 @@ class BackgroundConfig:
 
     layers: int = 16
     layer_px: int = 384             # texels along each side of a layer
-    env_width: int = 256            # azimuth texels of the far sphere (height: half of it)
+    env_width: int = 1024           # azimuth texels of the far sphere (height: half of it)
+    env_depths: int = 24            # radii the far sphere's depth sweep tries per texel (0: one sphere)
     top: float = 1.5                # highest layer: this many R above the object centre
     r_out_factor: float = 2.0       # far sphere: this many times the farthest camera distance
     train_size: int = 64            # side of the training crops (pixels)
@@ -54,6 +55,9 @@ class BackgroundConfig:
     lr: float = 0.05
     tv_weight: float = 1e-4
     sphere_margin: float = 1.08     # without a clean plate: rays within this many R are left out
+    refine_share: float = 0.5       # without a clean plate: then trained again on what the first mattes call
+                                    # room, for this share of the budget (minutes or steps; 0: not)
+    refine_grow_px: int = 2         # ... keeping this far from anything they call object
     max_frames: int = 400
     seed: int = 0
 
@@ -85,14 +89,19 @@ class LayerField:
     ``center`` (3,) object centre, board frame (m); ``basis`` (3, 3) rows x_ref, y_ref, up;
     ``heights`` (K,) layer heights above the board plane (m, along up), increasing; layers cover
     ``|u|, |v| <= half`` around the centre with ``S x S`` texels; the sphere has radius
-    ``r_out`` and ``He x We`` equirectangular texels (azimuth wraps).
+    ``r_out`` and ``He x We`` equirectangular texels (azimuth wraps); with ``env_depth`` (He, We)
+    each of its texels lies at its own distance from the centre (a depth panorama: the room's
+    walls, not a sphere, so a wall point seen from far apart views lands on one texel).
     """
 
     def __init__(self, layers: torch.Tensor, env: torch.Tensor, center: torch.Tensor, basis: torch.Tensor,
-                 heights: torch.Tensor, half: float, r_out: float, guess: torch.Tensor | None = None):
+                 heights: torch.Tensor, half: float, r_out: float, guess: torch.Tensor | None = None,
+                 env_depth: np.ndarray | None = None):
         """``layers`` (K, S, S, 4), ``env`` (He, We, 4) logits; ``guess`` (G, G) float, 1 where the
-        board plane's texel is a guess (no view saw it past the object), over the layers' square."""
+        board plane's texel is a guess (no view saw it past the object), over the layers' square;
+        ``env_depth`` (He, We) float32 metres or None (every texel at ``r_out``)."""
         self.guess = guess
+        self.env_depth = None if env_depth is None else np.ascontiguousarray(env_depth, np.float32)
         self.k, self.s = layers.shape[0], layers.shape[1]
         self.he, self.we = env.shape[0], env.shape[1]
         self.table = RowTable(torch.cat([layers.reshape(-1, 4), env.reshape(-1, 4)]))
@@ -145,11 +154,9 @@ class LayerField:
         w = (alpha * trans[:, :-1])[ri, ci]
         rgb = torch.zeros(n, 3, device=t.device, dtype=origins.dtype).index_add(0, ri, torch.sigmoid(raw[:, :3]) * w[:, None])
         # The far sphere (the camera is inside it) takes what is left.
-        b = (ou * du).sum(-1)
-        tf = -b + torch.sqrt((b * b - (ou * ou).sum(-1) + self.r_out ** 2).clamp_min(0))
-        q = (ou + tf[:, None] * du) / self.r_out
-        x = (torch.atan2(q[:, 1], q[:, 0]) / (2 * math.pi) + 0.5) * self.we - 0.5
-        y = (0.5 - torch.asin(q[:, 2].clamp(-1, 1)) / math.pi) * self.he - 0.5
+        ex, ey = env_coords(ou.detach().cpu().numpy(), du.detach().cpu().numpy(), self.r_out, self.he, self.we,
+                            self.env_depth)
+        x, y = (torch.from_numpy(v).to(ou) for v in (ex, ey))
         rows, fx, fy = _bilinear_rows(x, y, self.he, self.we, torch.full_like(x, self.n_layer_rows, dtype=torch.long), True)
         env = torch.sigmoid(self._blend(rows, fx, fy)[:, :3])
         return rgb + trans[:, -1:] * env
@@ -195,11 +202,8 @@ class LayerField:
         alpha = samples[..., 3]
         trans = np.cumprod(np.concatenate([np.ones((1, alpha.shape[1]), np.float32), 1 - alpha + 1e-7]), 0)
         rgb = (samples[..., :3] * (alpha * trans[:-1])[..., None]).sum(0)
-        b = (ou * du).sum(-1)
-        tf = -b + np.sqrt(np.clip(b * b - (ou * ou).sum(-1) + self.r_out ** 2, 0, None))
-        q = (ou + tf[:, None] * du) / self.r_out
-        ex = ((np.arctan2(q[:, 1], q[:, 0]) / (2 * np.pi) + 0.5) * self.we - 0.5) % self.we
-        ey = (0.5 - np.arcsin(np.clip(q[:, 2], -1, 1)) / np.pi) * self.he - 0.5
+        ex, ey = env_coords(ou, du, self.r_out, self.he, self.we, self.env_depth)
+        ex %= self.we
         far = cv2.remap(env, ex.astype(np.float32).reshape(h, w), ey.astype(np.float32).reshape(h, w),
                         cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(-1, 3)
         rgb = rgb + trans[-1][:, None] / (1.0 + np.exp(-far))
@@ -210,7 +214,7 @@ class LayerField:
         lay = F.interpolate(self.layers.permute(0, 3, 1, 2), size=(layer_px, layer_px), mode="bilinear",
                             align_corners=False).permute(0, 2, 3, 1)
         return LayerField(lay, self.env.clone(), self.center, self.basis, self.heights, self.half, self.r_out,
-                          self.guess)
+                          self.guess, self.env_depth)
 
     def guessed(self, cam: CropCamera) -> np.ndarray:
         """Pixels (H, W) bool of a crop camera whose ray meets the board plane where its colour is
@@ -240,13 +244,115 @@ class LayerField:
               "basis": self.basis.cpu(), "heights": self.heights.cpu(), "half": self.half, "r_out": self.r_out}
         if self.guess is not None:
             st["guess"] = self.guess.to(torch.uint8).cpu()
+        if self.env_depth is not None:
+            st["env_depth"] = torch.from_numpy(self.env_depth)
         return st
 
     @classmethod
     def from_state(cls, st: dict, device: torch.device | str = "cpu") -> LayerField:
         return cls(st["layers"].float().to(device), st["env"].float().to(device), st["center"].float().to(device),
                    st["basis"].float().to(device), st["heights"].float().to(device), st["half"], st["r_out"],
-                   st["guess"].float() if st.get("guess") is not None else None)
+                   st["guess"].float() if st.get("guess") is not None else None,
+                   st["env_depth"].numpy() if st.get("env_depth") is not None else None)
+
+
+def _sphere_exit(ou: np.ndarray, du: np.ndarray, r: np.ndarray | float) -> np.ndarray:
+    """Unit directions (N, 3) from the centre to where rays ``ou``, ``du`` (N, 3) (origins
+    relative to the centre, unit directions) leave a centred sphere of radius ``r`` ((N,) or scalar)."""
+    b = (ou * du).sum(-1)
+    tf = -b + np.sqrt(np.clip(b * b - (ou * ou).sum(-1) + np.asarray(r, np.float64) ** 2, 0, None))
+    q = ou + tf[:, None] * du
+    return q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-12)
+
+
+def _equirect(q: np.ndarray, he: int, we: int) -> tuple[np.ndarray, np.ndarray]:
+    """Texel coordinates x (azimuth, unwrapped), y (N,) of unit directions ``q`` (N, 3) (texel centres at integers)."""
+    x = (np.arctan2(q[:, 1], q[:, 0]) / (2 * np.pi) + 0.5) * we - 0.5
+    y = (0.5 - np.arcsin(np.clip(q[:, 2], -1, 1)) / np.pi) * he - 0.5
+    return x, y
+
+
+def _sample_wrapped(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bilinear samples (N,) of a panorama ``img`` (He, We) at texel coordinates ``x`` (wraps), ``y``."""
+    he, we = img.shape
+    y = np.clip(y, 0, he - 1)
+    x0, y0 = np.floor(x), np.minimum(np.floor(y), he - 2)
+    fx, fy = x - x0, y - y0
+    xi0 = x0.astype(np.int64) % we
+    xi1, yi0 = (xi0 + 1) % we, y0.astype(np.int64)
+    return ((img[yi0, xi0] * (1 - fx) + img[yi0, xi1] * fx) * (1 - fy)
+            + (img[yi0 + 1, xi0] * (1 - fx) + img[yi0 + 1, xi1] * fx) * fy)
+
+
+def env_coords(ou: np.ndarray, du: np.ndarray, r_out: float, he: int, we: int,
+               depth: np.ndarray | None = None, iters: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Far-sphere texel coordinates x (unwrapped), y (N,) float32 where rays ``ou``, ``du`` (N, 3)
+    (origins relative to the centre, unit directions; field basis) meet the room.
+
+    Without ``depth`` the room is the sphere of radius ``r_out``; with ``depth`` (He, We) metres it
+    is the depth panorama, met by fixed-point iteration (hit the sphere at the depth found where
+    the previous hit pointed; the map is smooth, so a few steps settle).
+    """
+    ou, du = np.asarray(ou, np.float64), np.asarray(du, np.float64)
+    x, y = _equirect(_sphere_exit(ou, du, r_out if depth is None else float(np.median(depth))), he, we)
+    for _ in range(iters if depth is not None else 0):
+        x, y = _equirect(_sphere_exit(ou, du, _sample_wrapped(depth, x, y)), he, we)
+    return x.astype(np.float32), y.astype(np.float32)
+
+
+def env_depth_sweep(fld: LayerField, bank: RayBank, n_depths: int = 24, min_rays: int = 4,
+                    max_rays: int = 400_000, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Depth panorama of the room beyond the layers, by a sweep over spheres (thesis-style plane sweep).
+
+    The training rays that do not meet the board plane inside the layers' square see the room's
+    walls; for each of ``n_depths`` radii (uniform in inverse depth, from just outside the
+    farthest camera to 25 times that) they land on the panorama's texels (half resolution), and
+    a texel takes the radius at which the colours landing on it agree best (a wall point seen
+    from far apart views lands on one texel only at its true distance). The choice is
+    median-filtered; texels no ray reaches take the median radius.
+    Returns depth (He, We) float32 metres, the mean colour (He, We, 3) float32 0..1 of the rays
+    landing on each texel at that depth and how many did (He, We) int.
+    """
+    from scipy.ndimage import median_filter
+
+    he, we = fld.he, fld.we
+    c = fld.center.cpu().numpy().astype(np.float64)
+    basis = fld.basis.cpu().numpy().astype(np.float64)
+    rng = np.random.default_rng(seed)
+    pick = rng.choice(bank.n, min(bank.n, max_rays), replace=False) if bank.n > max_rays else np.arange(bank.n)
+    ou = (bank.origins.numpy()[pick].astype(np.float64) - c) @ basis.T
+    du = bank.dirs.numpy()[pick].astype(np.float64) @ basis.T
+    col = bank.rgb.numpy()[pick].astype(np.float64)
+    e = np.where(np.abs(du[:, 2]) < 1e-9, 1e-9, du[:, 2])
+    t = (-(c @ basis[2]) - ou[:, 2]) / e
+    pu, pv = ou[:, 0] + t * du[:, 0], ou[:, 1] + t * du[:, 1]
+    beyond = ~((t > 0) & (np.abs(pu) <= fld.half) & (np.abs(pv) <= fld.half))
+    ou, du, col = ou[beyond], du[beyond], col[beyond]
+    far = float(np.linalg.norm(ou, axis=1).max()) if len(ou) else fld.r_out / 2
+    radii = 1.0 / np.linspace(1.0 / (1.05 * far), 1.0 / (25 * far), max(n_depths, 1))
+    gh, gw = max(2, he // 2), max(4, we // 2)
+    cost = np.full((len(radii), gh * gw), np.inf)
+    for k, r in enumerate(radii):
+        x, y = _equirect(_sphere_exit(ou, du, r), gh, gw)
+        idx = np.clip(np.round(y), 0, gh - 1).astype(np.int64) * gw + np.round(x).astype(np.int64) % gw
+        cnt = np.bincount(idx, minlength=gh * gw)
+        s1 = np.stack([np.bincount(idx, col[:, j], gh * gw) for j in range(3)], 1)
+        s2 = np.bincount(idx, (col ** 2).sum(1), gh * gw)
+        var = s2 / np.maximum(cnt, 1) - (s1 ** 2).sum(1) / np.maximum(cnt, 1) ** 2
+        cost[k] = np.where(cnt >= min_rays, var, np.inf)
+    seen = np.isfinite(cost).any(0)
+    best = np.where(seen, cost.argmin(0), -1).reshape(gh, gw)
+    fill = int(np.median(best[best >= 0])) if (best >= 0).any() else len(radii) // 2
+    best = median_filter(np.where(best >= 0, best, fill), size=5, mode="wrap")
+    inv = np.interp(best, np.arange(len(radii)), 1.0 / radii)
+    import cv2
+
+    depth = (1.0 / cv2.resize(inv.astype(np.float32), (we, he), interpolation=cv2.INTER_LINEAR)).astype(np.float32)
+    x, y = env_coords(ou, du, fld.r_out, he, we, depth)
+    idx = np.clip(np.round(y), 0, he - 1).astype(np.int64) * we + np.round(x).astype(np.int64) % we
+    cnt = np.bincount(idx, minlength=he * we)
+    mean = np.stack([np.bincount(idx, col[:, j], he * we) for j in range(3)], 1) / np.maximum(cnt, 1)[:, None]
+    return depth, mean.reshape(he, we, 3).astype(np.float32), cnt.reshape(he, we)
 
 
 def pinhole_rays(intr: Intrinsics, c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -360,6 +466,17 @@ def build_bank(views: Iterable[PosedView], center: np.ndarray, radius: float, up
     return RayBank(o, d, c)
 
 
+def with_env_depth(fld: LayerField, bank: RayBank, n_depths: int) -> LayerField:
+    """``fld`` with its far sphere made a depth panorama (:func:`env_depth_sweep`), each texel
+    starting at the mean colour of the rays that land on it."""
+    depth, mean, cnt = env_depth_sweep(fld, bank, n_depths)
+    env = fld.env.clone()
+    seen = torch.from_numpy(cnt > 0)
+    start = torch.logit(torch.from_numpy(mean).clamp(0.01, 0.99)).to(env)
+    env[..., :3] = torch.where(seen[..., None].to(env.device), start, env[..., :3])
+    return LayerField(fld.layers, env, fld.center, fld.basis, fld.heights, fld.half, fld.r_out, fld.guess, depth)
+
+
 # --------------------------------------------------------------------------- photo-consistency start
 def photo_init(fld: LayerField, views: list[PosedView], exclude_radius: float | None = None,
                max_views: int = 24, sharpness: float = 0.04) -> LayerField:
@@ -429,7 +546,7 @@ def photo_init(fld: LayerField, views: list[PosedView], exclude_radius: float | 
         t[:, :3] = torch.from_numpy(np.where(seen[:, None], np.log(mean / (1 - mean)), 0.0)).float()
         t[:, 3] = torch.from_numpy(np.log(alpha / (1 - alpha))).float()
     return LayerField(layers, fld.env.clone(), fld.center, fld.basis, fld.heights, fld.half, fld.r_out,
-                      guess if exclude_radius is not None else None)
+                      guess if exclude_radius is not None else None, fld.env_depth)
 
 
 # --------------------------------------------------------------------------- training
@@ -452,17 +569,19 @@ def _tv(fld: LayerField, n: int, gen: torch.Generator) -> torch.Tensor:
 
 
 def train_field(fld: LayerField, bank: RayBank, cfg: BackgroundConfig,
-                on_step: Callable[[TrainLog, float], None] | None = None) -> tuple[LayerField, TrainLog]:
-    """Fit ``fld`` to the bank's rays (MSE), coarse to fine: half, then full layer size."""
+                on_step: Callable[[TrainLog, float], None] | None = None,
+                coarse: bool = True) -> tuple[LayerField, TrainLog]:
+    """Fit ``fld`` to the bank's rays (MSE), coarse to fine: half, then full layer size
+    (``coarse`` False: full size throughout, to refine a trained field)."""
     if bank.n < 1000:
         raise DbbError(f"only {bank.n} rays to learn the background from: too little of the room is seen")
     gen = torch.Generator().manual_seed(cfg.seed)
     dev = fld.device
     levels = [max(16, fld.s // 2), fld.s]
-    fld = fld.resized(levels[0])
+    level = 0 if coarse else 1
+    fld = fld.resized(levels[level])
     log = TrainLog()
     t0 = time.monotonic()
-    level = 0
     while True:
         seconds = time.monotonic() - t0
         frac = (log.steps / cfg.steps) if cfg.steps else seconds / (cfg.minutes * 60)
@@ -502,6 +621,7 @@ class BackgroundModel:
     rays: int
     log: TrainLog
     cfg: BackgroundConfig
+    refine: TrainLog | None = None   # the second training on the rays the first mattes call room
 
     def render(self, cam: CropCamera) -> np.ndarray:
         """Predicted background (H, W, 3) uint8 in a crop camera (never the full frame)."""
@@ -513,7 +633,8 @@ class BackgroundModel:
 
     def save(self, path: Path) -> None:
         torch.save({"field": self.field.state(), "mode": self.mode, "frames": self.frames, "rays": self.rays,
-                    "cfg": asdict(self.cfg), "steps": self.log.steps, "psnr": self.log.psnr}, path)
+                    "cfg": asdict(self.cfg), "steps": self.log.steps, "psnr": self.log.psnr,
+                    "refine": asdict(self.refine) if self.refine is not None else None}, path)
 
     @classmethod
     def load(cls, path: Path, device: torch.device | str = "cpu") -> BackgroundModel:
@@ -522,8 +643,10 @@ class BackgroundModel:
         except Exception as e:  # noqa: BLE001 - any unreadable file is the same user error
             raise DbbError(f"cannot read the background model {path}: {e}") from None
         log = TrainLog(steps=st["steps"], psnr=st["psnr"])
+        known = set(BackgroundConfig.__dataclass_fields__)
+        ref = TrainLog(**st["refine"]) if st.get("refine") else None
         return cls(LayerField.from_state(st["field"], device), st["mode"], st["frames"], st["rays"], log,
-                   BackgroundConfig(**st["cfg"]))
+                   BackgroundConfig(**{k: v for k, v in st["cfg"].items() if k in known}), ref)
 
 
 def parallax_coverage(c2ws: np.ndarray, center: np.ndarray, radius: float, up: np.ndarray,
@@ -602,6 +725,63 @@ def train_background(views: Iterable[PosedView], n_views: int, center: np.ndarra
     bank = build_bank(stream(), center, radius, up, cfg, drop_sphere=not clean_plate, tick=tick)
     exclude = None if clean_plate else cfg.sphere_margin * radius
     fld = new_field(cfg, center, radius, up, np.stack(c2ws), bank, cfg.layer_px // 2, device)
+    if cfg.env_depths > 0:
+        fld = with_env_depth(fld, bank, cfg.env_depths)
     fld = photo_init(fld, init_views, exclude).resized(cfg.layer_px)
     fld, log = train_field(fld, bank, cfg, on_step)
     return BackgroundModel(fld, "clean plate" if clean_plate else "object video", len(c2ws), bank.n, log, cfg)
+
+
+# --------------------------------------------------------------------------- without a plate: train again
+def room_rays(cam: CropCamera, observed: np.ndarray, alpha: np.ndarray, inside: np.ndarray | None,
+              grow_px: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A matted crop's room rays (pure function): origins, dirs (M, 3) float32 and colours (M, 3)
+    float32 0..1 of the pixels of ``observed`` (S, S, 3) uint8 that ``alpha`` (S, S) uint8 calls
+    room, at least ``grow_px`` pixels from anything it calls object, inside the frame (``inside``
+    (S, S) uint8, 255 inside, or None)."""
+    import cv2
+
+    k = 2 * grow_px + 1
+    room = cv2.dilate((alpha > 0).astype(np.uint8), np.ones((k, k), np.uint8)) == 0
+    if inside is not None:
+        room &= inside == 255
+    keep = room.reshape(-1)
+    o, d = pinhole_rays(cam.intr, cam.c2w)
+    return (o[keep].astype(np.float32), d[keep].astype(np.float32),
+            observed.reshape(-1, 3)[keep].astype(np.float32) / 255.0)
+
+
+def refine_on_room(model: BackgroundModel, rays: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]],
+                   on_step: Callable[[TrainLog, float], None] | None = None) -> BackgroundModel:
+    """Without a clean plate: the field trained again (full size, ``refine_share`` of its budget) on the room
+    rays of the first mattes (:func:`room_rays`), which pass through the object's sphere wherever
+    the object is not: the table right behind and under a moving object, which the first
+    training had to leave out, gets its own texture, and stops being a guess where at least
+    two of those rays reach the board plane."""
+    parts = list(rays)
+    if not parts:
+        return model
+    o, d, c = (torch.from_numpy(np.concatenate(x)) for x in zip(*parts))
+    bank = RayBank(o, d, c)
+    if bank.n < 1000:
+        return model
+    cfg = model.cfg
+    fld = model.field
+    if fld.guess is not None:
+        basis = fld.basis.cpu().numpy().astype(np.float64)
+        cen = fld.center.cpu().numpy().astype(np.float64)
+        ou, du = (o.numpy().astype(np.float64) - cen) @ basis.T, d.numpy().astype(np.float64) @ basis.T
+        e = np.where(np.abs(du[:, 2]) < 1e-9, 1e-9, du[:, 2])
+        t = (-(cen @ basis[2]) - ou[:, 2]) / e
+        g = fld.guess.shape[0]
+        gx = np.floor((ou[:, 0] + t * du[:, 0]) / fld.half * 0.5 * g + 0.5 * g).astype(np.int64)
+        gy = np.floor((ou[:, 1] + t * du[:, 1]) / fld.half * 0.5 * g + 0.5 * g).astype(np.int64)
+        ok = (t > 0) & (gx >= 0) & (gx < g) & (gy >= 0) & (gy < g)
+        hits = np.bincount(gy[ok] * g + gx[ok], minlength=g * g).reshape(g, g)
+        guess = fld.guess * torch.from_numpy(hits < 2).to(fld.guess)
+        fld = LayerField(fld.layers, fld.env, fld.center, fld.basis, fld.heights, fld.half, fld.r_out, guess,
+                         fld.env_depth)
+    budget = replace(cfg, minutes=cfg.refine_share * cfg.minutes,
+                     steps=max(1, round(cfg.refine_share * cfg.steps)) if cfg.steps else None)
+    fld, log = train_field(fld, bank, budget, on_step, coarse=False)
+    return BackgroundModel(fld, model.mode, model.frames, model.rays, model.log, model.cfg, log)

@@ -27,6 +27,8 @@ from .background import (
     BackgroundModel,
     PosedView,
     parallax_coverage,
+    refine_on_room,
+    room_rays,
     train_background,
 )
 from .board import BoardSpec
@@ -432,7 +434,7 @@ def _crop_segment(seg: _CropSegment, tick: Callable[[int], None] | None = None) 
         extra = {}
         if f.index in seg.sheet_at:
             extra["sheet_frame"] = _sheet_frame(f.image, oc.cam, seg.intr, c2w, sp.center)
-        np.savez(seg.scratch / f"{f.name}.npz", observed=oc.observed, predicted=oc.predicted,
+        np.savez(seg.scratch / f"{f.name}.npz", observed=oc.observed, predicted=oc.predicted, alpha=oc.rgba[..., 3],
                  guessed=oc.guessed if oc.guessed is not None else np.zeros(0, bool),
                  inside=oc.inside if oc.inside is not None else np.zeros(0, np.uint8), **extra)
         out.append(_FirstMatte(f.index, f.name, oc.cam, oc.touches_border, oc.noise, oc.room_detail))
@@ -490,6 +492,32 @@ def _matte_segment(seg: _MatteSegment, tick: Callable[[int], None] | None = None
     return out
 
 
+def _refine_background(ctx: StageContext, bg: BackgroundOutput, crops: list[_FirstMatte], scratch: Path,
+                       prog) -> BackgroundOutput:
+    """The object-video field trained again on the first mattes' room rays
+    (:func:`~dbb_capture.background.refine_on_room`); saved over background/field.pt."""
+    grow = bg.model.cfg.refine_grow_px
+
+    def rays():
+        for fm in crops:
+            with np.load(scratch / f"{fm.name}.npz") as z:
+                inside = z["inside"] if z["inside"].size else None
+                yield room_rays(fm.cam, z["observed"], z["alpha"], inside, grow)
+
+    task = prog.add_task("train background again on the mattes' room", total=100, info="")
+    model = refine_on_room(bg.model, rays(), lambda log, frac: prog.update(
+        task, completed=100 * frac, info=f"psnr {log.psnr:.1f} dB, step {log.steps}"))
+    if model.refine is None:
+        return bg
+    model.save(ctx.out / "background" / "field.pt")
+    report = {**bg.report, "refined_on_room": {"steps": model.refine.steps, "seconds": round(model.refine.seconds, 1),
+                                               "train_psnr_db": round(model.refine.psnr, 2)}}
+    write_json(ctx.out / "background" / "report.json", report)
+    ctx.notes.append(f"background trained again on the first mattes' room: {model.refine.steps} steps, "
+                     f"training PSNR {model.refine.psnr:.1f} dB")
+    return replace(bg, model=model, report=report)
+
+
 def crops_stage(ctx: StageContext, bg: BackgroundOutput) -> CropsOutput:
     """Every posed frame -> RGBA crop; writes crops/, masks/, crops.json, dataset.json,
     contact_sheet.png, and crops_observed/ and crops_background/ (the observed crop and the room
@@ -521,14 +549,24 @@ def crops_stage(ctx: StageContext, bg: BackgroundOutput) -> CropsOutput:
             return map_spawned(fn, tasks, workers, lambda n: prog.advance(task, n))
         return [fn(t, lambda n: prog.advance(task, n)) for t in tasks]
 
-    with progress(transient=True) as prog:
+    def first_pass(model: BackgroundModel) -> list[_FirstPass]:
         task = prog.add_task("crop and matte", total=len(posed), info="")
+        _MODELS.pop(out / "background" / "field.pt", None)
         if workers == 1:
-            _MODELS[out / "background" / "field.pt"] = bg.model
-        first = run(_crop_segment, [_CropSegment(inp.footage, {i: c2w[i] for i in idx}, poses.run.intrinsics, sphere,
-                                                 cfg.crop_size, cfg.crop_fill, cfg.matte, out / "background" / "field.pt",
-                                                 scratch, sheet_at) for idx in parts], task)
+            _MODELS[out / "background" / "field.pt"] = model
+        return run(_crop_segment, [_CropSegment(inp.footage, {i: c2w[i] for i in idx}, poses.run.intrinsics, sphere,
+                                                cfg.crop_size, cfg.crop_fill, cfg.matte, out / "background" / "field.pt",
+                                                scratch, sheet_at) for idx in parts], task)
+
+    with progress(transient=True) as prog:
+        first = first_pass(bg.model)
         crops = [c for part in first for c in part.crops]
+        if bg.model.mode == "object video" and cfg.background.refine_share > 0:
+            # No clean plate: the field learns the room again where the first mattes see it
+            # through the object's sphere, then every crop is matted with it.
+            bg = _refine_background(ctx, bg, crops, scratch, prog)
+            first = first_pass(bg.model)
+            crops = [c for part in first for c in part.crops]
         counts = [p.object_counts for p in first if p.object_counts is not None]
         capture = capture_matte([c.noise for c in crops], sum(counts) if counts else None,
                                 [c.room_detail for c in crops], cfg.matte.sharp_min_detail)

@@ -251,3 +251,110 @@ def test_second_matte_pass_votes_across_segment_cuts(tmp_path):
     big = (xx - 16) ** 2 + (yy - 15) ** 2 <= 6 ** 2
     assert (one[4][..., 3][big] > 127).mean() > 0.95      # outvoted by frames 3 and 5
     assert (one[2][..., 3][big] > 127).mean() > 0.95
+
+
+def _wall_bank(center, radius_wall=2.5, n_views=16, size=40):
+    """Rays of a ring of cameras looking up and away past the object at a textured spherical
+    wall of radius ``radius_wall`` around ``center`` (none meets the board plane): colour from
+    the wall point's direction, a checker of 8-degree cells."""
+    o_all, d_all, c_all = [], [], []
+    for m in _ring(center, n=n_views):
+        eye = m[:3, 3]
+        target = center + 2.0 * (center - eye) * np.array([1.0, 1.0, 0.0]) + np.array([0.0, 0.0, -0.8])
+        cam = look_at(eye, target, UP)
+        from dbb_capture.cameras import Intrinsics
+
+        o, d = pinhole_rays(Intrinsics(size, size, 60.0, 60.0, (size - 1) / 2, (size - 1) / 2), cam)
+        oc = o - center
+        b = (oc * d).sum(1)
+        t = -b + np.sqrt(b * b - (oc * oc).sum(1) + radius_wall ** 2)
+        q = (oc + t[:, None] * d) / radius_wall
+        az, el = np.degrees(np.arctan2(q[:, 1], q[:, 0])), np.degrees(np.arcsin(q[:, 2]))
+        check = ((np.floor(az / 8) + np.floor(el / 8)) % 2)[:, None]
+        o_all.append(o), d_all.append(d), c_all.append(np.where(check > 0, [0.8, 0.7, 0.3], [0.2, 0.3, 0.6]))
+    o, d, c = (torch.from_numpy(np.concatenate(x)).float() for x in (o_all, d_all, c_all))
+    return RayBank(o, d, c)
+
+
+def test_far_sphere_depth_sweep_finds_the_wall():
+    """The sweep puts the far sphere's texels at the wall's distance (the views' rays agree there),
+    and the field renders the wall from its texels sharper than a sphere at the default radius."""
+    from dbb_capture.background import env_coords, with_env_depth
+
+    center = np.array([0.3, 0.2, -0.08])
+    bank = _wall_bank(center)
+    fld = new_field(BackgroundConfig(layers=4, env_width=256), center, 0.1, UP, _ring(center), bank, 32)
+    assert not np.isclose(fld.r_out, 2.5, rtol=0.2)          # the default sphere is not at the wall
+    deep = with_env_depth(fld, bank, 24)
+    seen = deep.env_depth[np.isfinite(deep.env_depth)]
+    ou = (bank.origins.numpy() - center) @ fld.basis.numpy().T
+    du = bank.dirs.numpy() @ fld.basis.numpy().T
+    x, y = env_coords(ou, du, fld.r_out, fld.he, fld.we, deep.env_depth)
+    hit = deep.env_depth[np.clip(np.round(y).astype(int), 0, fld.he - 1), np.round(x).astype(int) % fld.we]
+    assert abs(np.median(hit) - 2.5) < 0.35, np.median(hit)
+    assert seen.min() > 0
+    # Colours from the sweep's mean at the found depth: the field renders the bank closely.
+    with torch.no_grad():
+        err_deep = (deep.composite(bank.origins, bank.dirs) - bank.rgb).abs().mean()
+        flat = with_env_depth(fld, bank, 1)                    # one radius: a sphere just outside the cameras
+        err_flat = (flat.composite(bank.origins, bank.dirs) - bank.rgb).abs().mean()
+    assert err_deep < 0.6 * err_flat, (err_deep, err_flat)
+    back = LayerField.from_state(deep.state())
+    assert np.array_equal(back.env_depth, deep.env_depth)
+
+
+def test_room_rays_keep_away_from_the_matte():
+    from dbb_capture.background import room_rays
+
+    center = np.array([0.3, 0.2, -0.08])
+    cam = crop_camera(_ring(center)[3], _intr(), center, 0.1, UP, 32, 0.9)
+    obs = np.full((32, 32, 3), 128, np.uint8)
+    alpha = np.zeros((32, 32), np.uint8)
+    alpha[10:20, 10:20] = 255
+    inside = np.full((32, 32), 255, np.uint8)
+    inside[:, :4] = 0
+    o, d, c = room_rays(cam, obs, alpha, inside, grow_px=2)
+    assert len(o) == 28 * 32 - 14 * 14 and np.allclose(c, 128 / 255)
+    assert len(room_rays(cam, obs, alpha, None, grow_px=0)[0]) == 32 * 32 - 100
+
+
+def test_refine_on_room_trains_again_and_sees_under_a_moving_object(plate_capture, tmp_path):
+    """Without a plate the field is trained again on the first mattes' room rays (full size, its
+    own budget); board-plane texels those rays reach stop being guesses; the model round-trips."""
+    from dbb_capture.background import BackgroundModel, refine_on_room, room_rays
+
+    cap = plate_capture
+    obj = json.loads((cap / "object.json").read_text())
+    center, radius = np.array(obj["center"]), obj["radius"]
+    video = _views(cap, "video.mp4", "video")
+    up = up_from_cameras(np.stack([v.c2w for v in video]))
+    cfg = BackgroundConfig(steps=40, layer_px=96, batch_rays=2048, refine_share=0.5)
+    model = train_background(iter(video), len(video), center, radius, up, clean_plate=False, cfg=cfg)
+    rays = []
+    for v in video:
+        oc = object_crop(v.image, v.intr, v.c2w, center, radius, up, 48, 0.9, model.render, guessed=model.guessed)
+        rays.append(room_rays(oc.cam, oc.observed, oc.rgba[..., 3], oc.inside))
+    before = float(model.field.guess.sum())
+    refined = refine_on_room(model, rays)
+    assert refined.refine is not None and refined.refine.steps == 20 and refined.log.steps == 40
+    assert refined.field.s == model.field.s and float(refined.field.guess.sum()) < before
+    refined.save(tmp_path / "f.pt")
+    back = BackgroundModel.load(tmp_path / "f.pt")
+    assert back.refine.steps == 20 and torch.equal(back.field.guess, refined.field.guess)
+
+
+def test_preprocess_without_plate_trains_the_field_again_on_the_mattes_room(plate_capture, tmp_path):
+    ds = tmp_path / "ds"
+    res = CliRunner().invoke(main, ["preprocess", str(plate_capture), "-o", str(ds), "--background-minutes", "0.05",
+                                    "--camera", str(plate_capture / "ground_truth" / "camera.json"),
+                                    "--crop-size", "48", "--sequence-length", "4", "--no-clean-plate"])
+    assert res.exit_code == 0, res.output
+    rep = json.loads((ds / "background" / "report.json").read_text())
+    assert rep["mode"].startswith("object video") and rep["refined_on_room"]["steps"] > 0
+    from dbb_capture.background import BackgroundModel
+
+    assert BackgroundModel.load(ds / "background" / "field.pt").refine.steps == rep["refined_on_room"]["steps"]
+    fr = json.loads((ds / "crops.json").read_text())["frames"][0]
+    rgba = cv2.imread(str(ds / fr["file_path"]), cv2.IMREAD_UNCHANGED)
+    assert rgba[..., 3].max() == 255 and rgba[0, 0, 3] == 0
+    assert not (ds / "matte_scratch").exists()
