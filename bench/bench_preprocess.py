@@ -25,6 +25,7 @@ the machine's load gave the time-budgeted field training.
 
     flock /tmp/dbb-bench.lock .venv/bin/python bench/bench_preprocess.py quality --work /tmp/dbb-bench-pre
     flock -s /tmp/dbb-bench.lock .venv/bin/python bench/bench_preprocess.py quality --work /tmp/dbb-bench-pre --rematte
+    flock -s /tmp/dbb-bench.lock .venv/bin/python bench/bench_preprocess.py quality --work /tmp/q --steps 1000
     flock /tmp/dbb-bench.lock .venv/bin/python bench/bench_preprocess.py speed --work /tmp/dbb-bench-pre
 """
 
@@ -167,7 +168,8 @@ def run_preprocess(capture: Path, out: Path, *args: str) -> float:
     return time.monotonic() - t
 
 
-def quality(work: Path, captures: list[Path], minutes: float, rescore: bool = False, again: bool = False) -> None:
+def quality(work: Path, captures: list[Path], minutes: float, rescore: bool = False, again: bool = False,
+            steps: int | None = None) -> None:
     """Preprocess each capture with and without its clean plate and score it (``rescore``: score
     the datasets already in ``work`` without running preprocess again; time shows as 0;
     ``again``: matte them again first, see :func:`rematte`)."""
@@ -176,7 +178,8 @@ def quality(work: Path, captures: list[Path], minutes: float, rescore: bool = Fa
         for plate in (True, False):
             name = f"{cap.name}-{'plate' if plate else 'noplate'}"
             out = work / name
-            secs = 0.0 if rescore or again else run_preprocess(cap, out, "--background-minutes", str(minutes),
+            budget = ["--background-steps", str(steps)] if steps else ["--background-minutes", str(minutes)]
+            secs = 0.0 if rescore or again else run_preprocess(cap, out, *budget,
                                                                *([] if plate else ["--no-clean-plate"]))
             bg = json.loads((out / "dataset.json").read_text())["background"]
             if again:
@@ -262,6 +265,9 @@ def main() -> None:
     ap.add_argument("what", choices=["quality", "speed"])
     ap.add_argument("--work", type=Path, default=Path("/tmp/dbb-bench-pre"))
     ap.add_argument("--minutes", type=float, default=2.0, help="background field training budget")
+    ap.add_argument("--steps", type=int, default=None,
+                    help="quality: train the background field for this many steps instead (a run whose result "
+                         "does not depend on the machine's load)")
     ap.add_argument("--rescore", action="store_true", help="quality: score the datasets in --work again")
     ap.add_argument("--rematte", action="store_true",
                     help="quality: crop and matte the datasets in --work again (their fields kept), then score")
@@ -270,7 +276,7 @@ def main() -> None:
     a = ap.parse_args()
     a.work.mkdir(parents=True, exist_ok=True)
     if a.what == "quality":
-        quality(a.work, a.captures, a.minutes, a.rescore, a.rematte)
+        quality(a.work, a.captures, a.minutes, a.rescore, a.rematte, a.steps)
     else:
         speed(a.work, a.minutes)
 

@@ -184,6 +184,8 @@ def calibrate(input_path: Path, board_path: Path | None, output: Path, fps: floa
               help="Frames per RSSM training window (1 context + N-1 predicted).")
 @click.option("--background-minutes", type=click.FloatRange(min=0.05), default=2.0, show_default=True,
               help="Training budget of the background field.")
+@click.option("--background-steps", type=click.IntRange(min=1), default=None,
+              help="Train the background field for this many steps instead of a time budget (reproducible runs).")
 @click.option("--clean-plate/--no-clean-plate", default=True, show_default=True,
               help="Learn the room from the clean plate when there is one (else from the object video).")
 @click.option("--crop-window", type=str, default=None, metavar="X,Y,SIZE",
@@ -199,7 +201,8 @@ def calibrate(input_path: Path, board_path: Path | None, output: Path, fps: floa
 def preprocess(capture: Path, output: Path, board_path: Path | None, camera_path: Path | None,
                footage: Path | None, object_path: Path | None, background: Path | None,
                fps: float | None, blur_ratio: float, refine: bool, crop_size: int, crop_fill: float,
-               test_fraction: float, sequence_length: int, background_minutes: float, clean_plate: bool,
+               test_fraction: float, sequence_length: int, background_minutes: float, background_steps: int | None,
+               clean_plate: bool,
                crop_window: str | None, fixed_matte: bool, stop_after: str | None, workers: int | None, overwrite: bool) -> None:
     """Turn CAPTURE into a dataset in OUTPUT: poses, background field, mattes and RGBA crops.
 
@@ -226,7 +229,7 @@ def preprocess(capture: Path, output: Path, board_path: Path | None, camera_path
                            workers=_workers(workers), stop_after=stop_after, crop_size=crop_size,
                            crop_fill=crop_fill, test_fraction=test_fraction, sequence_length=sequence_length,
                            use_clean_plate=clean_plate,
-                           background=replace(BackgroundConfig(), minutes=background_minutes))
+                           background=replace(BackgroundConfig(), minutes=background_minutes, steps=background_steps))
     res = run_preprocess(inputs, output, cfg, overwrite=overwrite)
     for note in res.notes:
         console.print(f"[yellow]note:[/yellow] {note}", soft_wrap=True)
