@@ -9,6 +9,8 @@
              .venv/bin/dbb-capture preprocess sample_data/dynamic -o /tmp/dyn_ds --background-minutes 1
              .venv/bin/python bench/bench_rssm.py quality /tmp/dyn_ds --capture sample_data/dynamic \
                  --run /tmp/rssm_run --minutes 15
+    blurred-copy: what copy-first blurred more at each step (a hedge that never moves) scores
+             .venv/bin/python bench/bench_rssm.py blurred-copy /tmp/dyn_ds --sigma 0.5 --sigma 1
 
 Take timing figures under ``flock /tmp/dbb-bench.lock`` on a shared machine.
 """
@@ -28,7 +30,9 @@ import torch
 from dbb_capture import rssm
 
 
-def speed(size: int, steps: int = 300, settings: list[str] = ()) -> dict:
+def speed(size: int, steps: int = 300, settings: list[str] = (), repeat: int = 1) -> dict:
+    """Frames per second of the TorchScript stepper (batch 1) over ``steps`` steps, ``repeat`` times:
+    the median, and every repetition (a shared machine's timings vary by tens of per cent)."""
     model = rssm.Rssm(replace(overrides(list(settings))[0], size=size)).eval()
     ts = rssm.script_stepper(model)
     with torch.no_grad():
@@ -36,14 +40,18 @@ def speed(size: int, steps: int = 300, settings: list[str] = ()) -> dict:
         view = torch.tensor([[30.0, 40.0, 0.7]])
         for _ in range(30):                      # warm-up (TorchScript profiling runs)
             h, z, _ = ts.step(h, z, view)
-        t, c = time.perf_counter(), time.process_time()
-        for i in range(steps):
-            view = torch.tensor([[30.0 + 0.1 * i, 40.0, 0.7]])
-            h, z, _x = ts.step(h, z, view)
-        dt, dc = time.perf_counter() - t, time.process_time() - c
+        runs = []
+        for _ in range(repeat):
+            t, c = time.perf_counter(), time.process_time()
+            for i in range(steps):
+                view = torch.tensor([[30.0 + 0.1 * i, 40.0, 0.7]])
+                h, z, _x = ts.step(h, z, view)
+            runs.append((time.perf_counter() - t, time.process_time() - c))
+    dt, dc = float(np.median([r[0] for r in runs])), float(np.median([r[1] for r in runs]))
     # CPU seconds say what the step costs when the machine is shared (wall time then also
     # counts the time other processes hold the cores).
     return {"size": size, "steps": steps, "frames_per_s": round(steps / dt, 1), "ms_per_frame": round(1e3 * dt / steps, 3),
+            "frames_per_s_each": [round(steps / r[0], 1) for r in runs],
             "frames_per_cpu_s": round(steps / dc, 1), "load_average_1min": round(os.getloadavg()[0], 2),
             "threads": torch.get_num_threads(), "parameters": sum(p.numel() for p in model.parameters())}
 
@@ -73,9 +81,19 @@ def still_truth(dataset: Path, capture: Path, steps: int = 150, samples: int = 2
                                                       np.float32), "truth": truth, "frame": k}
 
 
-def evaluate(run: Path, dataset: Path, still: dict | None, temperature: float, name: str) -> dict:
-    """Evaluate a run folder (again) at ``temperature``, into ``run/name``; the report's figures."""
-    model = rssm.load_model(run)
+def last_model(run: Path) -> rssm.Rssm:
+    """The last trained model of a run (its checkpoint), where model.pt is the selected one."""
+    ck = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=False)
+    model = rssm.Rssm(rssm.RssmConfig.from_json(ck["config"]))
+    model.load_state_dict(ck["model"])
+    return model.eval()
+
+
+def evaluate(run: Path, dataset: Path, still: dict | None, temperature: float, name: str,
+             model: rssm.Rssm | None = None) -> dict:
+    """Evaluate a run folder (again; its model.pt unless ``model``) at ``temperature``, into
+    ``run/name``; the report's figures."""
+    model = model if model is not None else rssm.load_model(run)
     data = rssm.load_sequences(dataset, model.cfg.size)
     ck = run / "checkpoint.pt"
     history = torch.load(ck, weights_only=False)["history"] if ck.is_file() else []
@@ -86,13 +104,14 @@ def evaluate(run: Path, dataset: Path, still: dict | None, temperature: float, n
             "report": str(run / name)}
 
 
-def train_test_gap(run: Path, dataset: Path, temperature: float, windows: int = 40) -> dict:
+def train_test_gap(run: Path, dataset: Path, temperature: float, windows: int = 40,
+                   model: rssm.Rssm | None = None) -> dict:
     """Mean open-loop PSNR gain over copy-first on training windows and on held-out ones (dB).
 
     A model that fits its training windows far better than held-out ones has learned which pose
     goes with which training view and window, not how the toy moves.
     """
-    model = rssm.load_model(run)
+    model = model if model is not None else rssm.load_model(run)
     data = rssm.load_sequences(dataset, model.cfg.size)
     out = {}
     for split in ("train", "test"):
@@ -100,6 +119,26 @@ def train_test_gap(run: Path, dataset: Path, temperature: float, windows: int = 
         rep, _ = rssm.evaluate(rssm.Stepper(model, temperature), sub, max_windows=windows, rollout_steps=3)
         out[split] = round(rep.mean("psnr", "model") - rep.mean("psnr", "copy_first"), 3)
     return out
+
+
+def blurred_copy(dataset: Path, sigma: float, size: int = 64) -> dict:
+    """Copy-first blurred by a Gaussian of ``sigma`` x sqrt(step) pixels, on the test windows: PSNR
+    gain (dB) over plain copy-first per step and on average. What a prediction that only hedges
+    (grows less sure, never moves) scores against the bar."""
+    import cv2
+
+    data = rssm.load_sequences(dataset, size)
+    starts = data.starts("test")
+    idx = starts[:, None] + np.arange(data.length)[None]
+    truth = rssm._pm_np(data.rgba[idx])                                   # (W, L, S, S, 4)
+    gains = []
+    for t in range(1, data.length):
+        s = sigma * np.sqrt(t)
+        blur = [cv2.GaussianBlur(truth[w, 0], (0, 0), s) if s > 0 else truth[w, 0] for w in range(len(starts))]
+        gains.append(np.mean([rssm.psnr(b, truth[w, t]) for w, b in enumerate(blur)])
+                     - np.mean([rssm.psnr(truth[w, 0], truth[w, t]) for w in range(len(starts))]))
+    return {"sigma_px_times_sqrt_step": sigma, "windows": len(starts), "gain_per_step_db": [round(g, 3) for g in gains],
+            "gain_db": round(float(np.mean(gains)), 3)}
 
 
 def overrides(pairs: list[str]) -> tuple[rssm.RssmConfig, rssm.TrainConfig]:
@@ -158,6 +197,16 @@ def quality(dataset: Path, run: Path, capture: Path | None, minutes: float, step
         name = f"report-still-t{temperature:g}" + ("" if start_frame is None else f"-from{start_frame}")
         out["still_view_eval"] = evaluate(run, dataset, still, temperature, name)
         out["gain_vs_copy_first_train_test"] = train_test_gap(run, dataset, temperature)
+        meta = json.loads((run / "run.json").read_text())
+        if meta.get("selection"):
+            # model.pt is the model selected on the held-out tail of the training split; the
+            # last one (the checkpoint) is scored too, to show what the selection did.
+            sel = dict(meta["selection"])
+            out["selection"] = {k: v for k, v in sel.items() if k != "validations"}
+            out["selection"]["validations"] = sel.get("validations", [])
+            last = last_model(run)
+            out["last_model_eval"] = evaluate(run, dataset, still, temperature, name + "-last", model=last)
+            out["last_model_gain_train_test"] = train_test_gap(run, dataset, temperature, model=last)
         if capture is None:
             k = still["frame"]
             out["still_view_eval"]["motion"]["truth_source"] = f"the footage itself, frames {k + 1}-{k + 150}"
@@ -170,6 +219,8 @@ def main() -> None:
     s = sub.add_parser("speed")
     s.add_argument("--threads", type=int, default=2)
     s.add_argument("--sizes", default="64,256")
+    s.add_argument("--steps", type=int, default=300, help="steps per timing")
+    s.add_argument("--repeat", type=int, default=1, help="timings per size (the median is reported)")
     s.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                    help="a RssmConfig setting other than its default (repeatable)")
     q = sub.add_parser("quality")
@@ -189,10 +240,15 @@ def main() -> None:
                    help="a RssmConfig or TrainConfig setting other than its default (repeatable)")
     q.add_argument("--start-frame", type=int, default=None,
                    help="fixed-camera footage: start the still-view rollout at this frame (default: the report's)")
+    b = sub.add_parser("blurred-copy", help="the score of copy-first blurred more at each step (a hedge)")
+    b.add_argument("dataset", type=Path)
+    b.add_argument("--sigma", type=float, action="append", default=[], help="pixels at step 1 (repeatable)")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
-    if a.cmd == "speed":
-        out = [{**speed(int(s), settings=a.set), "settings": a.set} for s in a.sizes.split(",")]
+    if a.cmd == "blurred-copy":
+        out = [blurred_copy(a.dataset, s) for s in (a.sigma or [0.5])]
+    elif a.cmd == "speed":
+        out = [{**speed(int(s), a.steps, a.set, a.repeat), "settings": a.set} for s in a.sizes.split(",")]
     else:
         out = quality(a.dataset, a.run, a.capture, a.minutes, a.steps, a.batch, a.lr, a.temperature, not a.no_train,
                       a.set, a.start_frame, a.resume)

@@ -117,7 +117,7 @@ def replace_steps(tc, n):
 def test_tiny_overfit_loss_drops(data):
     torch.manual_seed(0)
     m = rssm.Rssm(SMALL)
-    tc = rssm.TrainConfig(steps=40, batch=4, lr=2e-3)
+    tc = rssm.TrainConfig(steps=40, batch=4, lr=2e-3, augment="none")      # the same windows, learned
     st = rssm.train(rssm.TrainState(m, rssm._optimizer(m, tc)), data, tc)
     first, last = st.history[0], st.history[-1]
     # (Losses weighted toward moving pixels, on random frames of the windows: noisier than a plain error.)
@@ -300,7 +300,7 @@ def test_copy3_composite_copies_the_context_frame_exactly_and_starts_near_it():
     assert m.decoder.ups[-1].out_channels == 9
     ctx_pm = rssm.premultiply(torch.rand(2, 4, 32, 32))
     ctx = m.encoder.features(ctx_pm)
-    feat = torch.randn(2, 16 + 16 + 2 * 16)
+    feat = torch.randn(2, m.decoder.fc[0].in_features)
     with torch.no_grad():
         # Untrained: mostly the context frame as is (sharp, no resampling blur).
         out = m.decoder(feat, ctx, ctx_pm)
@@ -377,6 +377,9 @@ def test_view_delta_encodes_the_change_of_viewpoint_since_the_context_frame():
     assert torch.allclose(feats[0], feats[1], atol=1e-5)
     with pytest.raises(DbbError, match="decoder_view"):
         replace_cfg(SMALL, decoder_view="nope").validate()
+    # Relative is the default; runs written before the setting existed were absolute, and load so.
+    assert rssm.RssmConfig().decoder_view == "relative"
+    assert rssm.RssmConfig.from_json({"size": 32}).decoder_view == "absolute"
 
 
 def test_best_of_k_scores_each_window_by_its_best_sample():
@@ -433,3 +436,63 @@ def test_augment_mirrors_and_reverses_whole_windows():
     assert torch.equal(y, x) and torch.equal(w, v)
     with pytest.raises(DbbError, match="augment"):
         rssm.TrainConfig(augment="flip,spin").validate()
+
+
+def test_stepper_upsamples_with_subpixel_convolutions_exactly():
+    torch.manual_seed(0)
+    up = torch.nn.ConvTranspose2d(12, 5, 4, 2, 1)
+    x = torch.randn(2, 12, 7, 9)
+    with torch.no_grad():
+        assert torch.allclose(rssm.SubpixelUp(up)(x), up(x), atol=1e-5)
+    with pytest.raises(ValueError):
+        rssm.SubpixelUp(torch.nn.ConvTranspose2d(4, 4, 3, 2, 1))
+    # The stepper's decoder is the same function as the trained one, with faster layers.
+    m = rssm.Rssm(SMALL).eval()
+    st = rssm.Stepper(m)
+    assert any(isinstance(u, rssm.SubpixelUp) for u in st.decoder.ups)
+    assert all(isinstance(u, torch.nn.ConvTranspose2d) for u in m.decoder.ups)     # training untouched
+    pm = torch.rand(3, 4, 32, 32)
+    feat = torch.randn(3, m.decoder.fc[0].in_features)
+    with torch.no_grad():
+        ctx = m.encoder.features(pm)
+        assert torch.allclose(st.decoder(feat, ctx, pm), m.decoder(feat, ctx, pm), atol=1e-5)
+
+
+def test_selection_holds_out_the_training_tail_and_writes_the_best_model(data, tmp_path):
+    starts, length = rssm.training_windows(data, None)
+    keep, val = rssm.validation_split(data, starts, length, 0.45)
+    assert len(keep) > 0 and len(val) > 0
+    assert data.times[keep + length - 1].max() < data.times[val].min()    # no training window touches the tail
+    assert set(val) <= set(data.starts("train"))
+    with pytest.raises(DbbError, match="val_fraction"):
+        rssm.validation_split(data, starts, length, 0.01)       # a tail shorter than a window
+    with pytest.raises(DbbError, match="val_fraction"):
+        rssm.TrainConfig(val_fraction=0.6).validate()
+    # A model that moves enough beats a better-scoring one that does not; the kept weights are a copy.
+    m = rssm.Rssm(SMALL)
+    sel = rssm.Selection()
+    sel.offer(10, {"gain": 1.0, "energy_ratio": 0.1}, m, 0.7)
+    assert sel.step == 10 and not sel.qualified
+    sel.offer(20, {"gain": -1.0, "energy_ratio": 0.9}, m, 0.7)
+    sel.offer(30, {"gain": -2.0, "energy_ratio": 0.9}, m, 0.7)
+    assert sel.step == 20 and sel.qualified and len(sel.history) == 3
+    with torch.no_grad():
+        m.prior[0].weight.add_(1.0)
+    assert not torch.equal(sel.state_dict["prior.0.weight"], m.prior[0].weight)
+    # Scores are those of the run-time open loop, and the random state is left alone.
+    torch.manual_seed(5)
+    before = torch.rand(1)
+    torch.manual_seed(5)
+    score = rssm.validate(m, data, val)
+    assert torch.equal(torch.rand(1), before)
+    assert set(score) == {"gain", "energy_ratio"} and math.isfinite(score["gain"]) and score["energy_ratio"] >= 0
+    # A run with selection writes the selected model and says which; the checkpoint keeps the last.
+    out = tmp_path / "run"
+    meta = rssm.train_run(data.source.parent, out, SMALL, rssm.TrainConfig(steps=4, batch=2, val_fraction=0.45,
+                                                                        val_every=2), quiet=True)
+    s = meta["selection"]
+    assert [v["step"] for v in s["validations"]] == [2, 4] and s["step"] in (2, 4)
+    ck = torch.load(out / "checkpoint.pt", weights_only=False)
+    assert ck["step"] == 4 and ck["selection"]["step"] == s["step"]
+    chosen = rssm.load_model(out).state_dict()
+    assert all(torch.equal(chosen[k], ck["selection"]["state_dict"][k]) for k in chosen)
