@@ -9,6 +9,7 @@ Each part evaluates a run folder written by ``dbb-train plenoctree`` (train it f
     python bench/bench_plenoctree.py synth OUT --minutes 10   # synthetic object, novel views
     python bench/bench_plenoctree.py capture DATASET --capture CAPTURE --run RUN --minutes 10
         # a synthetic capture through preprocess: held-out crops scored against the truth
+        # (--steps N: fixed steps; --truth DIR: train on crops re-made from the ground truth)
     python bench/bench_plenoctree.py speed RUN           # render speed and size of the tree only
 """
 
@@ -19,6 +20,7 @@ import json
 import math
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -140,25 +142,107 @@ def bench_synth(out: Path, minutes: float) -> dict:
             "ssim_white": mean_of(rows, "ssim_white"), "tree_mb": run.tree_path.stat().st_size / 1e6}
 
 
-def bench_capture(dataset: Path, capture: Path, run_dir: Path, minutes: float, res_max: int,
-                  train: bool, field: dict | None = None) -> dict:
+def truth_crops(dataset: Path, capture: Path, out: Path) -> Path:
+    """The dataset's crops re-made from the synthetic capture's ground truth: the object alone
+    rendered through every crop camera at its time (exact alpha), same cameras and split.
+    Training on it measures the ceiling the field reaches with perfect mattes."""
+    import cv2
+
+    from dbb_capture.synth import load_ground_truth, render_object_rgba
+
+    ds = load_dataset(dataset)
+    _, _, model = load_ground_truth(capture)
+    (out / "crops").mkdir(parents=True, exist_ok=True)
+    frames = []
+    for f in ds.frames:
+        p = out / "crops" / f"{f.name}.png"
+        rgba = render_object_rgba(model, f.intr, f.c2w, float(f.time or 0.0))
+        cv2.imwrite(str(p), cv2.cvtColor(rgba, cv2.COLOR_RGBA2BGRA))
+        frames.append(Frame(f.name, p, f.c2w, f.intr, f.split, time=f.time))
+    write_transforms(out / "crops.json", frames, ds.volume)
+    return out
+
+
+def resplit_crops(dataset: Path, out: Path, every: int) -> Path:
+    """A copy of the dataset's ``crops.json`` in ``out`` (image paths made absolute) where every
+    ``every``-th crop (0, every, ...) is held out instead of the last 20% of the capture's time:
+    novel views between training views, as NeRF benchmarks hold out (lego: every 8th), rather
+    than views past the end of the training path."""
+    from dbb_capture.datasets import find_dataset_file
+
+    src = find_dataset_file(dataset)
+    doc = json.loads(src.read_text())
+    for i, fr in enumerate(doc["frames"]):
+        fr["split"] = "test" if i % every == 0 else "train"
+        for key in ("file_path", "mask_path", "observed_path", "background_path"):
+            if fr.get(key):
+                fr[key] = str((src.parent / fr[key]).resolve())
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "crops.json").write_text(json.dumps(doc))
+    return out
+
+
+def error_parts(img_rgba: np.ndarray, gt: np.ndarray) -> dict[str, float]:
+    """Where a render's error on white lies, per pixel sums over one view (divide by pixels):
+    squared error on white where the truth's alpha is 0 (< 0.01: "room"), 1 (> 0.99: "core")
+    and between ("rim"); squared alpha error; squared premultiplied-colour error (= on black);
+    the render's alpha summed over the room and its transparency over the core.
+    ``img_rgba`` / ``gt`` straight RGBA (H, W, 4) in [0, 1]."""
+    a, at = img_rgba[..., 3], gt[..., 3]
+    pm, pmt = img_rgba[..., :3] * a[..., None], gt[..., :3] * at[..., None]
+    se = (((pm + 1 - a[..., None]) - (pmt + 1 - at[..., None])) ** 2).mean(-1)
+    room, core = at < 0.01, at > 0.99
+    rim = ~room & ~core
+    return {"px": float(a.size), "px_room": float(room.sum()), "px_core": float(core.sum()),
+            "se_white_room": float(se[room].sum()), "se_white_core": float(se[core].sum()),
+            "se_white_rim": float(se[rim].sum()), "se_alpha": float(((a - at) ** 2).sum()),
+            "se_premult": float(((pm - pmt) ** 2).mean(-1).sum()), "alpha_on_room": float(a[room].sum()),
+            "holes_in_core": float((1 - a[core]).sum())}
+
+
+def summarize_parts(parts: list[dict[str, float]]) -> dict[str, float]:
+    """:func:`error_parts` summed over views: MSE on white split by region (they add up to the
+    whole), alpha and premultiplied-colour MSE, mean alpha over the room, mean 1 - alpha over the core."""
+    t = {k: sum(p[k] for p in parts) for k in parts[0]}
+    n = t["px"]
+    out = {f"mse_white_{k}": t[f"se_white_{k}"] / n for k in ("room", "core", "rim")}
+    out |= {"mse_alpha": t["se_alpha"] / n, "mse_premult": t["se_premult"] / n,
+            "mean_alpha_on_room": t["alpha_on_room"] / max(t["px_room"], 1),
+            "mean_holes_in_core": t["holes_in_core"] / max(t["px_core"], 1),
+            "share_px_room": t["px_room"] / n, "share_px_core": t["px_core"] / n}
+    return out
+
+
+def bench_capture(dataset: Path, capture: Path, run_dir: Path, minutes: float | None, res_max: int,
+                  train: bool, field: dict | None = None, steps: int | None = None, truth: Path | None = None,
+                  holdout_every: int = 0, prune_weight: float | None = None) -> dict:
     """Train on a preprocess dataset of a synthetic capture (crops.json) and score the tree on
     the held-out crops (the dataset's test split) against the capture's ground truth: the
     object alone rendered through each crop camera at its time, on black and on white. Also
-    against the preprocess crops themselves (their alpha is a matte, not the truth).
-    ``field``: FieldConfig settings to change from the defaults."""
+    against the preprocess crops themselves (their alpha is a matte, not the truth), and where
+    the error lies (:func:`error_parts`) for the tree and for the crops.
+    ``field``: FieldConfig settings to change from the defaults; ``steps``: a fixed number of
+    steps instead of (or besides) ``minutes``; ``truth``: train instead on the crops re-made
+    from the ground truth in this folder (:func:`truth_crops`), the ceiling of perfect mattes;
+    ``holdout_every``: hold out every n-th crop instead of the dataset's split (:func:`resplit_crops`);
+    ``prune_weight``: the bake's weight pruning (None: the default)."""
     from dbb_capture.fields import FieldConfig
     from dbb_capture.synth import load_ground_truth, render_object_rgba
 
+    if holdout_every:
+        dataset = resplit_crops(dataset, run_dir.parent / f"{run_dir.name}.split{holdout_every}", holdout_every)
+    data = truth_crops(dataset, capture, truth) if truth is not None else dataset
     if train:
         fc = FieldConfig(**({"res_max": res_max, "res_start": min(32, res_max)} | (field or {})))
-        train_run(dataset, run_dir, RunConfig(minutes=minutes), fc, overwrite=True)
+        rc = RunConfig(minutes=minutes, steps=steps)
+        train_run(data, run_dir, rc if prune_weight is None else replace(rc, prune_weight=prune_weight), fc,
+                  overwrite=True)
     run = load_run(run_dir)
     ds = load_dataset(dataset)
     test = ds.split("test")
     _, _, model = load_ground_truth(capture)
     r = TreeRenderer(run.tree())
-    rows = []
+    rows, parts, crop_parts = [], [], []
     for f in test:
         gt = render_object_rgba(model, f.intr, f.c2w, float(f.time or 0.0)).astype(np.float32) / 255
         _, _, crop = frame_tensors(f, 1.0)
@@ -166,18 +250,23 @@ def bench_capture(dataset: Path, capture: Path, run_dir: Path, minutes: float, r
         for key, bg in (("black", (0.0, 0.0, 0.0)), ("white", (1.0, 1.0, 1.0))):
             img = r.render(f.c2w, f.intr, bg)
             b = np.asarray(bg, np.float32)
-            truth = gt[..., :3] * gt[..., 3:] + (1 - gt[..., 3:]) * b
+            truth_img = gt[..., :3] * gt[..., 3:] + (1 - gt[..., 3:]) * b
             mat = crop[..., :3] * crop[..., 3:] + (1 - crop[..., 3:]) * b
-            row[f"psnr_truth_{key}"] = psnr(float(((img - truth) ** 2).mean()))
+            row[f"psnr_truth_{key}"] = psnr(float(((img - truth_img) ** 2).mean()))
             row[f"psnr_crop_{key}"] = psnr(float(((img - mat) ** 2).mean()))
-            row[f"psnr_crop_vs_truth_{key}"] = psnr(float(((mat - truth) ** 2).mean()))
+            row[f"psnr_crop_vs_truth_{key}"] = psnr(float(((mat - truth_img) ** 2).mean()))
         rows.append(row)
-    out = {"run": str(run_dir), "train_minutes": run.meta["training"]["seconds"] / 60,
+        parts.append(error_parts(r.render(f.c2w, f.intr), gt))
+        crop_parts.append(error_parts(crop, gt))
+    out = {"run": str(run_dir), "dataset": str(data), "train_minutes": run.meta["training"]["seconds"] / 60,
            "steps": run.meta["training"]["steps"], "final_lattice": run.meta["field"]["final_res"],
            "heldout_views": len(test)}
     for k in rows[0] if rows else ():
         if k != "frame":
             out[k] = mean_of(rows, k)
+    if parts:
+        out["tree_error"] = summarize_parts(parts)
+        out["crop_error"] = summarize_parts(crop_parts)
     return out
 
 
@@ -185,11 +274,19 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("part", choices=["lego", "fox", "synth", "speed", "capture"])
     ap.add_argument("path", type=Path, help="run folder (lego, fox), output folder (synth) or dataset (capture)")
-    ap.add_argument("--minutes", type=float, default=10.0)
+    ap.add_argument("--minutes", type=float, default=None, help="training budget (default 10 without --steps)")
     ap.add_argument("--capture", type=Path, help="capture: the synthetic capture (its ground_truth/)")
     ap.add_argument("--run", type=Path, help="capture: run folder to write (or read with --no-train)")
     ap.add_argument("--res-max", type=int, default=128, help="capture: finest lattice")
     ap.add_argument("--no-train", action="store_true", help="capture: score an existing run")
+    ap.add_argument("--steps", type=int, default=None,
+                    help="capture: train this many steps (alone unless --minutes is given too)")
+    ap.add_argument("--prune-weight", type=float, default=None,
+                    help="capture: the bake's weight pruning (default: dbb-train's)")
+    ap.add_argument("--holdout-every", type=int, default=0,
+                    help="capture: hold out every n-th crop instead of the last 20%% of the capture's time")
+    ap.add_argument("--truth", type=Path, default=None,
+                    help="capture: train on the crops re-made from the ground truth, written to this folder")
     ap.add_argument("--field", type=json.loads, default=None,
                     help='capture: FieldConfig settings to change, JSON, e.g. \'{"beta_alpha": 1e-3}\'')
     ap.add_argument("--repeats", type=int, default=8)
@@ -204,9 +301,10 @@ def main(argv: list[str] | None = None) -> int:
     elif a.part == "capture":
         if a.capture is None or a.run is None:
             ap.error("capture needs --capture and --run")
-        res = bench_capture(a.path, a.capture, a.run, a.minutes, a.res_max, not a.no_train, a.field)
+        res = bench_capture(a.path, a.capture, a.run, a.minutes,
+                            a.res_max, not a.no_train, a.field, a.steps, a.truth, a.holdout_every, a.prune_weight)
     else:
-        res = bench_synth(a.path, a.minutes)
+        res = bench_synth(a.path, a.minutes or 10.0)
     return emit(res, a.json)
 
 

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .datasets import Frame, ObjectVolume, frame_rays, load_rgba, scaled_intrinsics
+from .datasets import Frame, ObjectVolume, frame_rays, load_rgb, load_rgba, scaled_intrinsics
 from .errors import DbbError
 
 COLOUR_ACTIVATION = "sigmoid"   # what the SH sum goes through; recorded in every baked tree
@@ -96,6 +96,17 @@ class FieldConfig:
     # Volumes' beta prior), mean over rays: pushes rays to empty or opaque, against the fringe
     # haze that noisy mattes leave. 0: off.
     beta_alpha: float = 0.0
+    # Datasets that keep each crop's observed pixels and the room predicted behind them
+    # (preprocess crops): render over the predicted room and compare with what the camera saw,
+    # so alpha comes from multi-view consistency instead of from the matte. The matte (random
+    # background, as for other datasets) stays a prior on a share ``matte_prior`` of the rays
+    # where the observed colour is within ``decisive_diff`` (max over RGB, [0, 1]) of the room's,
+    # fading out linearly up to that difference. False: the matte alone. Off by default: on the
+    # synthetic static capture it halved the error around the object but left the object more
+    # see-through in views past the training path (docs/benchmarks.md, issue 4, fourth session).
+    observed_loss: bool = False
+    matte_prior: float = 0.5
+    decisive_diff: float = 0.1
     seed: int = 0
 
     @property
@@ -523,11 +534,14 @@ def opacity_prior(alpha: torch.Tensor) -> torch.Tensor:
 
 @dataclass
 class RayBank:
-    """Every training pixel as a ray: origins, unit directions (N, 3) world; straight RGBA (N, 4)."""
+    """Every training pixel as a ray: origins, unit directions (N, 3) world; straight RGBA (N, 4);
+    for preprocess crops also the observed RGB and the predicted room's RGB (N, 3), else None."""
 
     origins: torch.Tensor
     dirs: torch.Tensor
     rgba: torch.Tensor
+    observed: torch.Tensor | None = None
+    room: torch.Tensor | None = None
 
     @property
     def n(self) -> int:
@@ -545,22 +559,52 @@ def build_ray_bank(frames: list[Frame], downscale: float, volume: ObjectVolume |
                    mode: str = "object") -> RayBank:
     """All pixels of ``frames``; in object mode, rays that miss the object sphere are dropped
     (they only ever see the background, which the random-background loss already covers)."""
-    os_, ds, cs = [], [], []
-    for f in frames:
+    # Frames without them (a crop past the frame's border) get NaN rows: the matte alone.
+    has_room = [f.observed_path is not None and f.background_path is not None for f in frames]
+    with_room = mode == "object" and any(has_room)
+    os_, ds, cs, seen, rooms = [], [], [], [], []
+    for f, known in zip(frames, has_room):
         o, d, c = frame_tensors(f, downscale)
         o, d, c = o.reshape(-1, 3), d.reshape(-1, 3), c.reshape(-1, 4)
+        hit = np.ones(len(o), bool)
         if mode == "object" and volume is not None:
             oc = o - np.asarray(volume.center, np.float32)
             b = (oc * d).sum(-1)
             hit = b * b - ((oc * oc).sum(-1) - volume.radius ** 2) > 0
-            o, d, c = o[hit], d[hit], c[hit]
-        os_.append(o)
-        ds.append(d)
-        cs.append(c)
+        os_.append(o[hit])
+        ds.append(d[hit])
+        cs.append(c[hit])
+        if with_room:
+            unknown = np.full((int(hit.sum()), 3), np.nan, np.float32)
+            seen.append(load_rgb(f.observed_path, f.intr, downscale).reshape(-1, 3)[hit] if known else unknown)
+            rooms.append(load_rgb(f.background_path, f.intr, downscale).reshape(-1, 3)[hit] if known else unknown)
     if not os_ or sum(len(o) for o in os_) == 0:
         raise DbbError("no training rays: no frame sees the object volume")
-    return RayBank(torch.from_numpy(np.concatenate(os_)), torch.from_numpy(np.concatenate(ds)),
-                   torch.from_numpy(np.concatenate(cs)))
+    def cat(xs: list[np.ndarray]) -> torch.Tensor | None:
+        return torch.from_numpy(np.concatenate(xs)) if xs else None
+
+    return RayBank(cat(os_), cat(ds), cat(cs), cat(seen), cat(rooms))
+
+
+def ray_targets(rgba: torch.Tensor, bg: torch.Tensor, observed: torch.Tensor | None, room: torch.Tensor | None,
+                cfg: FieldConfig, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """Background and target colour (B, 3) of each training ray.
+
+    ``rgba`` (B, 4) straight RGBA (a matte's alpha for crops), ``bg`` (B, 3) random colours:
+    the target is ``rgba`` composited over ``bg``. With ``observed`` / ``room`` (B, 3) (see
+    :attr:`FieldConfig.observed_loss`), a ray instead renders over the predicted room and is
+    compared with the observed pixel, except with probability ``matte_prior * (1 - diff /
+    decisive_diff)`` (clipped at 0), ``diff`` the largest RGB difference observed - room: where
+    colour cannot tell object from room, the matte decides. Rays with NaN ``observed`` take the matte.
+    """
+    target = rgba[:, :3] * rgba[:, 3:] + (1 - rgba[:, 3:]) * bg
+    if observed is None or room is None or not cfg.observed_loss:
+        return bg, target
+    diff = (observed - room).abs().amax(-1)
+    p_matte = cfg.matte_prior * (1 - diff / max(cfg.decisive_diff, 1e-6)).clamp(0, 1)
+    use_seen = (torch.rand(diff.shape[0], generator=gen) >= p_matte.cpu()).to(rgba.device) & diff.isfinite()
+    use_seen = use_seen[:, None]
+    return torch.where(use_seen, room, bg), torch.where(use_seen, observed, target)
 
 
 @dataclass
@@ -701,7 +745,8 @@ def train(state: TrainState, bank: RayBank, budget: Budget,
     """Optimize ``state.field`` on the rays of ``bank`` until ``budget`` is spent.
 
     Each step renders ``batch_rays`` random rays over random background colours (so alpha is
-    learned as true transparency: the target is ``rgb * a + (1 - a) * bg``), adds TV, and
+    learned as true transparency: the target is ``rgb * a + (1 - a) * bg``; for crops that keep
+    their observed pixels, over the predicted room instead: :func:`ray_targets`), adds TV, and
     takes a sparse Adam step. The coarse-to-fine schedule follows the *fraction of the budget*
     spent, so a shorter budget runs the same stages faster. Checkpoints go to ``checkpoint``.
     """
@@ -744,7 +789,8 @@ def train(state: TrainState, bank: RayBank, budget: Budget,
         d = bank.dirs[pick].to(dev)
         c = bank.rgba[pick].to(dev)
         bg = torch.rand(pick.numel(), 3, generator=gen).to(dev)   # runs may round the batch down
-        target = c[:, :3] * c[:, 3:] + (1 - c[:, 3:]) * bg
+        seen, room = (None, None) if bank.observed is None else (bank.observed[pick].to(dev), bank.room[pick].to(dev))
+        bg, target = ray_targets(c, bg, seen, room, cfg, gen)
         if fast:
             # Closed-form forward and backward in numba: gradients land in the tables' buffers.
             mse = cpu_photometric_step(fld, o, d, bg, target, torch.rand(o.shape[0], generator=gen), cfg.beta_alpha)

@@ -141,3 +141,18 @@ def test_follows_previous_breaks_at_gaps():
     t = np.array([0.0, 0.1, 0.2, 0.5, 0.6, 0.7])        # frames 0.3 and 0.4 dropped
     assert follows_previous(t).tolist() == [False, True, True, False, True, True]
     assert follows_previous(np.array([1.0])).tolist() == [False]
+
+
+def test_crop_record_names_the_observed_crop_and_its_predicted_room():
+    """crops.json keeps what each matte was cut from (training composites over that room), and
+    says nothing for a crop that has no such files (one past the frame's border)."""
+    from dbb_capture.crops import CropRecord
+
+    center = np.array([0.3, 0.2, -0.08])
+    cam = crop_camera(_camera(center, 30, 40, 0.6, 0), SRC, center, 0.1, UP)
+    with_room = CropRecord("crops/00001.png", cam, 1, 0.1, "train", observed_path="crops_observed/00001.png",
+                           background_path="crops_background/00001.png").to_json()
+    assert with_room["observed_path"] == "crops_observed/00001.png"
+    assert with_room["background_path"] == "crops_background/00001.png"
+    plain = CropRecord("crops/00002.png", cam, 2, 0.2, "test", touches_border=True).to_json()
+    assert "observed_path" not in plain and "background_path" not in plain

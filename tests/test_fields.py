@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
+import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 import torch
 
 from dbb_capture.board import BoardSpec
-from dbb_capture.cameras import Intrinsics, look_at
+from dbb_capture.cameras import Intrinsics, look_at, opengl_from_opencv
 from dbb_capture.datasets import Frame, ObjectVolume
 from dbb_capture.fields import (Budget, FieldConfig, TrainState, build_ray_bank, contract, frame_tensors,
                                 new_field, psnr, render_image, sh_basis, train)
@@ -198,3 +200,74 @@ def test_cpu_kernel_matches_autograd(nearest):
     straight = (ref_img.rgb - (1 - a)[:, None] * bg) / a.clamp_min(1e-6)[:, None]
     assert np.allclose(img[:, 0, 3], a.numpy(), atol=1e-5)
     assert np.allclose(img[:, 0, :3], straight.clamp(0, 1).numpy(), atol=1e-4)
+
+
+def _room(size: int, rng: np.random.Generator) -> np.ndarray:
+    """A smooth room behind one view (size, size, 3) uint8: two random colours blended across it."""
+    c0, c1 = rng.uniform(20, 235, 3), rng.uniform(20, 235, 3)
+    t = np.linspace(0, 1, size)[None, :, None] * np.ones((size, 1, 1))
+    return np.round(c0 * (1 - t) + c1 * t).astype(np.uint8)
+
+
+def test_observed_pixels_over_the_predicted_room_correct_a_bad_matte(tmp_path):
+    """Crops that keep the observed pixels and the predicted room (preprocess writes both): the
+    field renders over each ray's room and is compared with what the camera saw, so a matte that
+    cut holes into the object (alpha 0 on a third of it in each view) does not make the object
+    see-through; trained on the matte alone it does."""
+    import cv2
+
+    from dbb_capture.datasets import load_dataset
+    from dbb_capture.fields import ray_targets
+
+    frames, vol = synthetic_object_frames(tmp_path, n=24, size=24)
+    rng = np.random.default_rng(3)
+    truth = {}
+    for f in frames:
+        rgba = cv2.cvtColor(cv2.imread(str(f.image_path), cv2.IMREAD_UNCHANGED), cv2.COLOR_BGRA2RGBA)
+        truth[f.name] = rgba[..., 3].astype(np.float32) / 255
+        room = _room(24, rng)
+        a = rgba[..., 3:].astype(np.float32) / 255
+        seen = np.round(rgba[..., :3] * a + room * (1 - a)).astype(np.uint8)
+        bad = rgba.copy()
+        bad[..., 3] = np.where(rng.random((24, 24)) < 0.33, 0, rgba[..., 3])     # holes in the matte
+        cv2.imwrite(str(tmp_path / f"{f.name}.png"), cv2.cvtColor(bad, cv2.COLOR_RGBA2BGRA))
+        cv2.imwrite(str(tmp_path / f"seen_{f.name}.png"), cv2.cvtColor(seen, cv2.COLOR_RGB2BGR))
+        cv2.imwrite(str(tmp_path / f"room_{f.name}.png"), cv2.cvtColor(room, cv2.COLOR_RGB2BGR))
+    doc = {"camera_model": "OPENCV", "object": {"center": list(vol.center), "radius": vol.radius}, "frames": [
+        {"file_path": f"{f.name}.png", "observed_path": f"seen_{f.name}.png", "background_path": f"room_{f.name}.png",
+         "transform_matrix": opengl_from_opencv(f.c2w).tolist(), "split": f.split, **f.intr.nerfstudio_fields()}
+        for f in frames]}
+    (tmp_path / "crops.json").write_text(json.dumps(doc))
+    ds = load_dataset(tmp_path)
+    assert all(f.observed_path is not None and f.background_path is not None for f in ds.frames)
+    bank = build_ray_bank(ds.split("train"), 1, vol)
+    assert bank.observed is not None and bank.observed.shape == bank.room.shape == (bank.n, 3)
+
+    def see_through(cfg: FieldConfig) -> float:
+        """Mean transparency over the object's core on the held-out views."""
+        torch.manual_seed(0)
+        st = train(TrainState(new_field(cfg, vol, torch.device("cpu"))), bank, Budget(steps=150))
+        out = []
+        for f in ds.split("test"):
+            o, d, _ = frame_tensors(f, 1)
+            a = render_image(st.field, torch.from_numpy(o), torch.from_numpy(d), None)[..., 3]
+            out.append(1 - a[truth[f.name] > 0.99].mean())
+        return float(np.mean(out))
+
+    matte_only = see_through(TINY)
+    observed = see_through(replace(TINY, observed_loss=True))
+    assert matte_only > 0.1 and observed < 0.5 * matte_only, (matte_only, observed)
+    # Rays pick their target: the observed pixel over the room where colour decides, the matte
+    # (over a random colour) where it cannot, with probability matte_prior; NaN: the matte.
+    rgba = torch.tensor([[0.9, 0.1, 0.1, 1.0]] * 3)
+    bg = torch.full((3, 3), 0.5)
+    seen = torch.tensor([[0.9, 0.1, 0.1], [0.3, 0.3, 0.3], [float("nan")] * 3])
+    room = torch.tensor([[0.2, 0.2, 0.2], [0.3, 0.3, 0.3], [0.2, 0.2, 0.2]])
+    gen = torch.Generator().manual_seed(0)
+    picks = [ray_targets(rgba, bg, seen, room, replace(TINY, observed_loss=True, matte_prior=1.0), gen)
+             for _ in range(20)]
+    assert all(torch.equal(b[0], room[0]) and torch.equal(t[0], seen[0]) for b, t in picks)   # colour decides
+    assert all(torch.equal(t[1], rgba[1, :3]) for _, t in picks)        # no colour difference, prior 1: matte
+    assert all(torch.equal(b[2], bg[2]) and torch.equal(t[2], rgba[2, :3]) for b, t in picks)
+    b, t = ray_targets(rgba, bg, seen, room, TINY, gen)
+    assert torch.equal(b, bg) and torch.equal(t, rgba[:, :3])
