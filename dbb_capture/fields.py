@@ -107,6 +107,10 @@ class FieldConfig:
     observed_loss: bool = False
     matte_prior: float = 0.5
     decisive_diff: float = 0.1
+    # ... and where the matte is sure of the object (alpha at least this) it decides: over one
+    # room per ray, colour and alpha trade off (a * c + (1 - a) * B fits many pairs), which left
+    # the object see-through from new angles. Above 1: never.
+    matte_opaque: float = 0.99
     seed: int = 0
 
     @property
@@ -595,13 +599,15 @@ def ray_targets(rgba: torch.Tensor, bg: torch.Tensor, observed: torch.Tensor | N
     :attr:`FieldConfig.observed_loss`), a ray instead renders over the predicted room and is
     compared with the observed pixel, except with probability ``matte_prior * (1 - diff /
     decisive_diff)`` (clipped at 0), ``diff`` the largest RGB difference observed - room: where
-    colour cannot tell object from room, the matte decides. Rays with NaN ``observed`` take the matte.
+    colour cannot tell object from room, the matte decides; so it does where its alpha is at least
+    ``matte_opaque``. Rays with NaN ``observed`` take the matte.
     """
     target = rgba[:, :3] * rgba[:, 3:] + (1 - rgba[:, 3:]) * bg
     if observed is None or room is None or not cfg.observed_loss:
         return bg, target
     diff = (observed - room).abs().amax(-1)
     p_matte = cfg.matte_prior * (1 - diff / max(cfg.decisive_diff, 1e-6)).clamp(0, 1)
+    p_matte = torch.where(rgba[:, 3] >= cfg.matte_opaque, torch.ones_like(p_matte), p_matte)
     use_seen = (torch.rand(diff.shape[0], generator=gen) >= p_matte.cpu()).to(rgba.device) & diff.isfinite()
     use_seen = use_seen[:, None]
     return torch.where(use_seen, room, bg), torch.where(use_seen, observed, target)

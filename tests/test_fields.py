@@ -258,16 +258,18 @@ def test_observed_pixels_over_the_predicted_room_correct_a_bad_matte(tmp_path):
     observed = see_through(replace(TINY, observed_loss=True))
     assert matte_only > 0.1 and observed < 0.5 * matte_only, (matte_only, observed)
     # Rays pick their target: the observed pixel over the room where colour decides, the matte
-    # (over a random colour) where it cannot, with probability matte_prior; NaN: the matte.
-    rgba = torch.tensor([[0.9, 0.1, 0.1, 1.0]] * 3)
-    bg = torch.full((3, 3), 0.5)
-    seen = torch.tensor([[0.9, 0.1, 0.1], [0.3, 0.3, 0.3], [float("nan")] * 3])
-    room = torch.tensor([[0.2, 0.2, 0.2], [0.3, 0.3, 0.3], [0.2, 0.2, 0.2]])
+    # (over a random colour) where it cannot, with probability matte_prior; NaN or a matte sure
+    # of the object (alpha >= matte_opaque): the matte.
+    rgba = torch.tensor([[0.9, 0.1, 0.1, 0.6]] * 3 + [[0.9, 0.1, 0.1, 1.0]])
+    bg = torch.full((4, 3), 0.5)
+    seen = torch.tensor([[0.9, 0.1, 0.1], [0.3, 0.3, 0.3], [float("nan")] * 3, [0.9, 0.1, 0.1]])
+    room = torch.tensor([[0.2, 0.2, 0.2], [0.3, 0.3, 0.3], [0.2, 0.2, 0.2], [0.2, 0.2, 0.2]])
+    matte = rgba[:, :3] * rgba[:, 3:] + (1 - rgba[:, 3:]) * bg
     gen = torch.Generator().manual_seed(0)
     picks = [ray_targets(rgba, bg, seen, room, replace(TINY, observed_loss=True, matte_prior=1.0), gen)
              for _ in range(20)]
     assert all(torch.equal(b[0], room[0]) and torch.equal(t[0], seen[0]) for b, t in picks)   # colour decides
-    assert all(torch.equal(t[1], rgba[1, :3]) for _, t in picks)        # no colour difference, prior 1: matte
-    assert all(torch.equal(b[2], bg[2]) and torch.equal(t[2], rgba[2, :3]) for b, t in picks)
+    assert all(torch.equal(t[1], matte[1]) for _, t in picks)           # no colour difference, prior 1: matte
+    assert all(torch.equal(b[2:], bg[2:]) and torch.equal(t[2:], matte[2:]) for b, t in picks)
     b, t = ray_targets(rgba, bg, seen, room, TINY, gen)
-    assert torch.equal(b, bg) and torch.equal(t, rgba[:, :3])
+    assert torch.equal(b, bg) and torch.equal(t, matte)
