@@ -10,13 +10,18 @@ front-to-back alpha composite of its crossings with the planes, then the sphere.
 layered radiance field (as multi-plane images are): trained by volume rendering from posed
 views, parallax-correct, and every ray needs only ~K+1 samples found in closed form, which is
 what makes it train in minutes and render crop windows in milliseconds on a CPU. The table
-and the board lie exactly on a layer, so they come out sharp from every side.
+and the board lie exactly on a layer, so they come out sharp from every side. The far sphere
+is a depth panorama (each texel at the distance a sweep over spheres finds the views agree):
+the room's walls are not at one radius, and a wall placed at the wrong one is smeared by the
+parallax between the views.
 
 Training data are "background crops": each clean-plate frame cut through the crop camera it
 would have had, so the field is trained in the geometry it is rendered in. Training starts
 from a plane sweep (each texel: the mean colour of its point across views, opaque where the
 views agree). Without a clean plate the object video is used with every pixel whose ray
-passes through the object's sphere left out; parallax shows other views what lies behind it.
+passes through the object's sphere left out; parallax shows other views what lies behind it;
+after the first mattes it is trained again on the rays they call room (:func:`refine_on_room`),
+which see the table through the sphere wherever the object is not.
 """
 
 from __future__ import annotations
