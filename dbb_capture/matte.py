@@ -52,6 +52,7 @@ class MatteConfig:
     disc_margin: float = 1.04      # the sphere's disc, slightly enlarged
     min_blob: float = 0.1          # pieces under this fraction of the largest are dropped (specks; parts stay joined)
     edge_px: int = 1               # width of the band where alpha is fractional
+    edge_gain: float = 1.25        # the compositing alpha of a shaded rim runs low (F from inside is brighter): x this
     guided_px: int = 3             # edge-aware smoothing of the soft alpha before the decision (0: off)
     guided_eps: float = 1e-3
     colour_bins: int = 32          # per channel, of the room/object colour histograms (8 levels a bin)
@@ -164,11 +165,15 @@ def _keep_large(mask: np.ndarray, min_blob: float) -> np.ndarray:
     return np.isin(lab, keep)
 
 
-def _edge_alpha(observed: np.ndarray, predicted: np.ndarray, core: np.ndarray, edge_px: int) -> np.ndarray:
+def _edge_alpha(observed: np.ndarray, predicted: np.ndarray, core: np.ndarray, edge_px: int,
+                gain: float = 1.0) -> np.ndarray:
     """Fractional alpha (H, W) float32 in a band around ``core`` by the compositing equation.
 
     With the object's colour F taken from the nearest surely-inside pixel and the background
-    B predicted, observed I = a F + (1 - a) B gives a = (I - B).(F - B) / |F - B|^2.
+    B predicted, observed I = a F + (1 - a) B gives a = (I - B).(F - B) / |F - B|^2, times
+    ``gain``: a shaded object's rim is darker than the pixels inside that give F, so it reads
+    as part room (against the true coverage the plain equation runs 0.03-0.1 low on fractional
+    pixels of the synthetic captures; 1.25 leaves -0.01 to +0.04).
     """
     from scipy.ndimage import distance_transform_edt
 
@@ -194,7 +199,7 @@ def _edge_alpha(observed: np.ndarray, predicted: np.ndarray, core: np.ndarray, e
     # hard decision.
     resid = np.linalg.norm(I - B - a[:, None] * fb, axis=1)
     mixed = (denom > 30.0 ** 2) & (resid < 0.3 * np.sqrt(denom))
-    a = np.where(mixed, np.clip(a, 0, 1), core[band].astype(np.float32))
+    a = np.where(mixed, np.clip(gain * a, 0, 1), core[band].astype(np.float32))
     alpha[band] = a
     return alpha
 
@@ -404,7 +409,7 @@ def matte_and_noise(observed: np.ndarray, predicted: np.ndarray, disc: np.ndarra
         for _ in range(3):
             kept = cv2.dilate(kept, np.ones((3, 3), np.uint8)) & core
         core = _fill_holes(kept.astype(bool))
-    alpha = _edge_alpha(observed, predicted, core, cfg.edge_px) * disc
+    alpha = _edge_alpha(observed, predicted, core, cfg.edge_px, cfg.edge_gain) * disc
     alpha[alpha < 0.02] = 0
     return straight_rgba(observed, predicted, alpha), measured, detail
 

@@ -277,3 +277,22 @@ def test_noise_map_keeps_a_mispredicted_wall_out_of_the_object():
     assert (one_level & wall & ~obj).sum() > 100
     per_colour = matte(obs, pred, disc)[..., 3] > 127
     assert (per_colour & wall & ~obj).sum() < 5 and iou(per_colour) > 0.97
+
+
+def test_edge_gain_scales_the_compositing_alpha_of_mixed_pixels():
+    """A shaded rim reads as part room: the compositing alpha of the band's mixed pixels is
+    scaled by ``gain`` (clipped to 1); inside and hard-decided pixels keep 1 / 0."""
+    from dbb_capture.matte import _edge_alpha
+
+    F, B = np.array([60.0, 90.0, 220.0]), np.array([200.0, 170.0, 120.0])
+    obs = np.tile(B, (16, 16, 1))
+    obs[:, :8] = F
+    obs[:, 8] = 0.4 * F + 0.6 * B                      # a column 40% covered
+    core = np.zeros((16, 16), bool)
+    core[:, :8] = True
+    pred = np.tile(B, (16, 16, 1)).astype(np.uint8)
+    plain = _edge_alpha(obs.astype(np.uint8), pred, core, 1, 1.0)
+    gained = _edge_alpha(obs.astype(np.uint8), pred, core, 1, 1.25)
+    assert np.allclose(plain[4:12, 8], 0.4, atol=0.02) and np.allclose(gained[4:12, 8], 0.5, atol=0.025)
+    assert (gained[:, :6] == 1).all() and (gained[:, 10:] == 0).all()
+    assert np.allclose(gained[plain < 1], np.minimum(1, 1.25 * plain[plain < 1]), atol=1e-6)
