@@ -244,7 +244,7 @@ def main() -> None:
     b.add_argument("dataset", type=Path)
     b.add_argument("--sigma", type=float, action="append", default=[], help="pixels at step 1 (repeatable)")
     a = ap.parse_args()
-    torch.set_num_threads(a.threads)
+    torch.set_num_threads(getattr(a, "threads", 1))
     if a.cmd == "blurred-copy":
         out = [blurred_copy(a.dataset, s) for s in (a.sigma or [0.5])]
     elif a.cmd == "speed":
