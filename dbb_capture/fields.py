@@ -560,12 +560,14 @@ def frame_tensors(frame: Frame, downscale: float) -> tuple[np.ndarray, np.ndarra
 
 
 def build_ray_bank(frames: list[Frame], downscale: float, volume: ObjectVolume | None = None,
-                   mode: str = "object") -> RayBank:
+                   mode: str = "object", observed: bool = True) -> RayBank:
     """All pixels of ``frames``; in object mode, rays that miss the object sphere are dropped
-    (they only ever see the background, which the random-background loss already covers)."""
+    (they only ever see the background, which the random-background loss already covers).
+    With ``observed``, frames that name their observed crop and predicted room (preprocess
+    crops) add them to the bank (:attr:`FieldConfig.observed_loss` uses them)."""
     # Frames without them (a crop past the frame's border) get NaN rows: the matte alone.
     has_room = [f.observed_path is not None and f.background_path is not None for f in frames]
-    with_room = mode == "object" and any(has_room)
+    with_room = observed and mode == "object" and any(has_room)
     os_, ds, cs, seen, rooms = [], [], [], [], []
     for f, known in zip(frames, has_room):
         o, d, c = frame_tensors(f, downscale)

@@ -125,7 +125,8 @@ def train_run(dataset: Path, out: Path, cfg: RunConfig, field_cfg: FieldConfig |
     fcfg = field_cfg or FieldConfig()
     fcfg = replace(fcfg, mode=mode)
     fcfg.validate()
-    bank = build_ray_bank(train_f, cfg.downscale, volume, mode)
+    bank = build_ray_bank(train_f, cfg.downscale, volume, mode,
+                          observed=(state.field.cfg if state is not None else fcfg).observed_loss)
     if state is None:
         state = TrainState(new_field(fcfg, volume, device))
     work.mkdir(parents=True, exist_ok=True)
