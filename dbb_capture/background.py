@@ -107,6 +107,8 @@ class LayerField:
         ``env_depth`` (He, We) float32 metres or None (every texel at ``r_out``)."""
         self.guess = guess
         self.env_depth = None if env_depth is None else np.ascontiguousarray(env_depth, np.float32)
+        # Where the fixed-point iteration of :func:`env_coords` starts (the panorama's median distance).
+        self.env_start = float(r_out) if env_depth is None else float(np.median(self.env_depth))
         self.k, self.s = layers.shape[0], layers.shape[1]
         self.he, self.we = env.shape[0], env.shape[1]
         self.table = RowTable(torch.cat([layers.reshape(-1, 4), env.reshape(-1, 4)]))
@@ -159,7 +161,7 @@ class LayerField:
         w = (alpha * trans[:, :-1])[ri, ci]
         rgb = torch.zeros(n, 3, device=t.device, dtype=origins.dtype).index_add(0, ri, torch.sigmoid(raw[:, :3]) * w[:, None])
         # The far sphere (the camera is inside it) takes what is left.
-        ex, ey = env_coords(ou.detach().cpu().numpy(), du.detach().cpu().numpy(), self.r_out, self.he, self.we,
+        ex, ey = env_coords(ou.detach().cpu().numpy(), du.detach().cpu().numpy(), self.env_start, self.he, self.we,
                             self.env_depth)
         x, y = (torch.from_numpy(v).to(ou) for v in (ex, ey))
         rows, fx, fy = _bilinear_rows(x, y, self.he, self.we, torch.full_like(x, self.n_layer_rows, dtype=torch.long), True)
@@ -207,7 +209,7 @@ class LayerField:
         alpha = samples[..., 3]
         trans = np.cumprod(np.concatenate([np.ones((1, alpha.shape[1]), np.float32), 1 - alpha + 1e-7]), 0)
         rgb = (samples[..., :3] * (alpha * trans[:-1])[..., None]).sum(0)
-        ex, ey = env_coords(ou, du, self.r_out, self.he, self.we, self.env_depth)
+        ex, ey = env_coords(ou, du, self.env_start, self.he, self.we, self.env_depth)
         ex %= self.we
         far = cv2.remap(env, ex.astype(np.float32).reshape(h, w), ey.astype(np.float32).reshape(h, w),
                         cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(-1, 3)
@@ -295,11 +297,12 @@ def env_coords(ou: np.ndarray, du: np.ndarray, r_out: float, he: int, we: int,
     (origins relative to the centre, unit directions; field basis) meet the room.
 
     Without ``depth`` the room is the sphere of radius ``r_out``; with ``depth`` (He, We) metres it
-    is the depth panorama, met by fixed-point iteration (hit the sphere at the depth found where
-    the previous hit pointed; the map is smooth, so a few steps settle).
+    is the depth panorama, met by fixed-point iteration from the sphere of radius ``r_out`` (hit
+    the sphere at the depth found where the previous hit pointed; the map is smooth, so a few
+    steps settle).
     """
     ou, du = np.asarray(ou, np.float64), np.asarray(du, np.float64)
-    x, y = _equirect(_sphere_exit(ou, du, r_out if depth is None else float(np.median(depth))), he, we)
+    x, y = _equirect(_sphere_exit(ou, du, r_out), he, we)
     for _ in range(iters if depth is not None else 0):
         x, y = _equirect(_sphere_exit(ou, du, _sample_wrapped(depth, x, y)), he, we)
     return x.astype(np.float32), y.astype(np.float32)
@@ -353,7 +356,7 @@ def env_depth_sweep(fld: LayerField, bank: RayBank, n_depths: int = 24, min_rays
     import cv2
 
     depth = (1.0 / cv2.resize(inv.astype(np.float32), (we, he), interpolation=cv2.INTER_LINEAR)).astype(np.float32)
-    x, y = env_coords(ou, du, fld.r_out, he, we, depth)
+    x, y = env_coords(ou, du, float(np.median(depth)), he, we, depth)
     idx = np.clip(np.round(y), 0, he - 1).astype(np.int64) * we + np.round(x).astype(np.int64) % we
     cnt = np.bincount(idx, minlength=he * we)
     mean = np.stack([np.bincount(idx, col[:, j], he * we) for j in range(3)], 1) / np.maximum(cnt, 1)[:, None]

@@ -289,7 +289,7 @@ def test_far_sphere_depth_sweep_finds_the_wall():
     seen = deep.env_depth[np.isfinite(deep.env_depth)]
     ou = (bank.origins.numpy() - center) @ fld.basis.numpy().T
     du = bank.dirs.numpy() @ fld.basis.numpy().T
-    x, y = env_coords(ou, du, fld.r_out, fld.he, fld.we, deep.env_depth)
+    x, y = env_coords(ou, du, deep.env_start, fld.he, fld.we, deep.env_depth)
     hit = deep.env_depth[np.clip(np.round(y).astype(int), 0, fld.he - 1), np.round(x).astype(int) % fld.we]
     assert abs(np.median(hit) - 2.5) < 0.35, np.median(hit)
     assert seen.min() > 0
