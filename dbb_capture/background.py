@@ -223,6 +223,21 @@ class LayerField:
         return LayerField(lay, self.env.clone(), self.center, self.basis, self.heights, self.half, self.r_out,
                           self.guess, self.env_depth)
 
+    def local_rays(self, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World rays ``o``, ``d`` (N, 3) -> origins relative to the centre and directions in the
+        field's basis (x_ref, y_ref, up), float64 (N, 3) each."""
+        basis = self.basis.cpu().numpy().astype(np.float64)
+        c = self.center.cpu().numpy().astype(np.float64)
+        return (np.asarray(o, np.float64) - c) @ basis.T, np.asarray(d, np.float64) @ basis.T
+
+    def board_hits(self, ou: np.ndarray, du: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Where local rays (:meth:`local_rays`) meet the board plane: ray parameter t and the
+        layers' coordinates u, v (N,) (metres from the centre; t <= 0: the ray leaves the plane)."""
+        c = self.center.cpu().numpy().astype(np.float64)
+        e = np.where(np.abs(du[:, 2]) < 1e-9, 1e-9, du[:, 2])
+        t = (-(c @ self.basis.cpu().numpy().astype(np.float64)[2]) - ou[:, 2]) / e
+        return t, ou[:, 0] + t * du[:, 0], ou[:, 1] + t * du[:, 1]
+
     def guessed(self, cam: CropCamera) -> np.ndarray:
         """Pixels (H, W) bool of a crop camera whose ray meets the board plane where its colour is
         a guess (continued from around the object, never seen): there a prediction error is no
@@ -232,13 +247,7 @@ class LayerField:
         h, w = cam.intr.height, cam.intr.width
         if self.guess is None:
             return np.zeros((h, w), bool)
-        o, d = pinhole_rays(cam.intr, cam.c2w)
-        basis = self.basis.cpu().numpy().astype(np.float64)
-        c = self.center.cpu().numpy().astype(np.float64)
-        ou, du = (o - c) @ basis.T, d @ basis.T
-        e = np.where(np.abs(du[:, 2]) < 1e-9, 1e-9, du[:, 2])
-        t = (-(c @ basis[2]) - ou[:, 2]) / e
-        pu, pv = ou[:, 0] + t * du[:, 0], ou[:, 1] + t * du[:, 1]
+        t, pu, pv = self.board_hits(*self.local_rays(*pinhole_rays(cam.intr, cam.c2w)))
         g = self.guess.shape[0]
         mx = ((pu / self.half + 1) * 0.5 * g - 0.5).astype(np.float32).reshape(h, w)
         my = ((pv / self.half + 1) * 0.5 * g - 0.5).astype(np.float32).reshape(h, w)
@@ -324,16 +333,11 @@ def env_depth_sweep(fld: LayerField, bank: RayBank, n_depths: int = 24, min_rays
     from scipy.ndimage import median_filter
 
     he, we = fld.he, fld.we
-    c = fld.center.cpu().numpy().astype(np.float64)
-    basis = fld.basis.cpu().numpy().astype(np.float64)
     rng = np.random.default_rng(seed)
     pick = rng.choice(bank.n, min(bank.n, max_rays), replace=False) if bank.n > max_rays else np.arange(bank.n)
-    ou = (bank.origins.numpy()[pick].astype(np.float64) - c) @ basis.T
-    du = bank.dirs.numpy()[pick].astype(np.float64) @ basis.T
+    ou, du = fld.local_rays(bank.origins.numpy()[pick], bank.dirs.numpy()[pick])
     col = bank.rgb.numpy()[pick].astype(np.float64)
-    e = np.where(np.abs(du[:, 2]) < 1e-9, 1e-9, du[:, 2])
-    t = (-(c @ basis[2]) - ou[:, 2]) / e
-    pu, pv = ou[:, 0] + t * du[:, 0], ou[:, 1] + t * du[:, 1]
+    t, pu, pv = fld.board_hits(ou, du)
     beyond = ~((t > 0) & (np.abs(pu) <= fld.half) & (np.abs(pv) <= fld.half))
     ou, du, col = ou[beyond], du[beyond], col[beyond]
     far = float(np.linalg.norm(ou, axis=1).max()) if len(ou) else fld.r_out / 2
@@ -776,14 +780,10 @@ def refine_on_room(model: BackgroundModel, rays: Iterable[tuple[np.ndarray, np.n
     cfg = model.cfg
     fld = model.field
     if fld.guess is not None:
-        basis = fld.basis.cpu().numpy().astype(np.float64)
-        cen = fld.center.cpu().numpy().astype(np.float64)
-        ou, du = (o.numpy().astype(np.float64) - cen) @ basis.T, d.numpy().astype(np.float64) @ basis.T
-        e = np.where(np.abs(du[:, 2]) < 1e-9, 1e-9, du[:, 2])
-        t = (-(cen @ basis[2]) - ou[:, 2]) / e
+        t, pu, pv = fld.board_hits(*fld.local_rays(o.numpy(), d.numpy()))
         g = fld.guess.shape[0]
-        gx = np.floor((ou[:, 0] + t * du[:, 0]) / fld.half * 0.5 * g + 0.5 * g).astype(np.int64)
-        gy = np.floor((ou[:, 1] + t * du[:, 1]) / fld.half * 0.5 * g + 0.5 * g).astype(np.int64)
+        gx = np.floor(pu / fld.half * 0.5 * g + 0.5 * g).astype(np.int64)
+        gy = np.floor(pv / fld.half * 0.5 * g + 0.5 * g).astype(np.int64)
         ok = (t > 0) & (gx >= 0) & (gx < g) & (gy >= 0) & (gy < g)
         hits = np.bincount(gy[ok] * g + gx[ok], minlength=g * g).reshape(g, g)
         guess = fld.guess * torch.from_numpy(hits < 2).to(fld.guess)

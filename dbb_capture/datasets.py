@@ -260,9 +260,7 @@ def load_rgba(frame: Frame, downscale: float = 1.0) -> np.ndarray:
     """
     import cv2
 
-    img = cv2.imread(str(frame.image_path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise InputError(f"cannot read image {frame.image_path}")
+    img = _read_image(frame.image_path, cv2.IMREAD_UNCHANGED, frame.intr)
     if img.ndim == 2:
         img = np.repeat(img[..., None], 3, axis=2)
     scale = 65535.0 if img.dtype == np.uint16 else 255.0
@@ -274,13 +272,7 @@ def load_rgba(frame: Frame, downscale: float = 1.0) -> np.ndarray:
         if m is None or m.shape != img.shape[:2]:
             raise InputError(f"mask {frame.mask_path} is unreadable or not the image's size")
         alpha = alpha * (m[..., None].astype(np.float32) / 255.0)
-    if (img.shape[1], img.shape[0]) != (frame.intr.width, frame.intr.height):
-        raise InputError(f"{frame.image_path}: image is {img.shape[1]}x{img.shape[0]}, "
-                         f"dataset says {frame.intr.width}x{frame.intr.height}")
-    rgba = np.concatenate([rgb * alpha, alpha], axis=-1)
-    if downscale != 1:
-        target = scaled_intrinsics(frame.intr, downscale)
-        rgba = cv2.resize(rgba, (target.width, target.height), interpolation=cv2.INTER_AREA)
+    rgba = _area_downscale(np.concatenate([rgb * alpha, alpha], axis=-1), frame.intr, downscale)
     a = rgba[..., 3:4]
     rgb = np.where(a > 1e-6, rgba[..., :3] / np.maximum(a, 1e-6), 0.0)
     return np.ascontiguousarray(np.concatenate([np.clip(rgb, 0, 1), a], -1), dtype=np.float32)
@@ -291,16 +283,30 @@ def load_rgb(path: Path, intr: Intrinsics, downscale: float = 1.0) -> np.ndarray
     1/``downscale`` size (area-averaged), e.g. a crop's observed pixels or predicted room."""
     import cv2
 
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    rgb = _read_image(path, cv2.IMREAD_COLOR, intr)[..., ::-1].astype(np.float32) / 255.0
+    return np.ascontiguousarray(_area_downscale(rgb, intr, downscale), dtype=np.float32)
+
+
+def _read_image(path: Path, flags: int, intr: Intrinsics) -> np.ndarray:
+    """``cv2.imread`` of a frame's image, which must be ``intr``'s size (clear errors otherwise)."""
+    import cv2
+
+    img = cv2.imread(str(path), flags)
     if img is None:
         raise InputError(f"cannot read image {path}")
     if (img.shape[1], img.shape[0]) != (intr.width, intr.height):
         raise InputError(f"{path}: image is {img.shape[1]}x{img.shape[0]}, dataset says {intr.width}x{intr.height}")
-    rgb = img[..., ::-1].astype(np.float32) / 255.0
-    if downscale != 1:
-        target = scaled_intrinsics(intr, downscale)
-        rgb = cv2.resize(rgb, (target.width, target.height), interpolation=cv2.INTER_AREA)
-    return np.ascontiguousarray(rgb, dtype=np.float32)
+    return img
+
+
+def _area_downscale(img: np.ndarray, intr: Intrinsics, downscale: float) -> np.ndarray:
+    """``img`` (h, w, C) float32 of a frame with intrinsics ``intr`` at 1/``downscale`` size (area average)."""
+    if downscale == 1:
+        return img
+    import cv2
+
+    target = scaled_intrinsics(intr, downscale)
+    return cv2.resize(img, (target.width, target.height), interpolation=cv2.INTER_AREA)
 
 
 def frame_rays(intr: Intrinsics, c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

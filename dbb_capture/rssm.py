@@ -798,15 +798,16 @@ def validate(model: Rssm, data: SequenceData, starts: np.ndarray, seed: int = 0,
         torch.manual_seed(seed)
         pred = premultiply(rollout(Stepper(model.eval()), first, views.cpu()))
     model.train(was_training)
+    x, pred = x.numpy(), pred.numpy()
     truth = x[:, 1:]
 
-    def mean_psnr(p: torch.Tensor) -> float:
-        mse = ((p - truth) ** 2).flatten(2).mean(2).clamp(min=1e-10)
-        return float((-10 * torch.log10(mse)).mean())
+    def mean_psnr(p: np.ndarray) -> float:
+        return float(np.mean([psnr(a, b) for a, b in zip(p.reshape(-1, *p.shape[2:]), truth.reshape(-1, *p.shape[2:]))]))
 
-    e_pred = float(torch.cat([pred[:, :1] - x[:, :1], pred[:, 1:] - pred[:, :-1]], 1).abs().mean())
-    e_true = float((x[:, 1:] - x[:, :-1]).abs().mean())
-    return {"gain": mean_psnr(pred) - mean_psnr(x[:, :1].expand_as(truth)),
+    # Time first for motion_energy; the predictions' first change is from the context frame.
+    e_pred = motion_energy(np.concatenate([x[:, :1], pred], 1).swapaxes(0, 1))
+    e_true = motion_energy(x.swapaxes(0, 1))
+    return {"gain": mean_psnr(pred) - mean_psnr(np.broadcast_to(x[:, :1], truth.shape)),
             "energy_ratio": e_pred / max(e_true, 1e-9)}
 
 
