@@ -23,7 +23,16 @@ code (their poses and background fields kept, both matte passes as preprocess ru
 scores the first pass alone and both passes: the matte compared on the same fields, whatever
 the machine's load gave the time-budgeted field training.
 
+Error budget (``budget``): on synthetic captures, through their true cameras and without any
+trained field, what resampling the footage costs (its true coverage cut through the crop warp
+against the coverage through the crop camera), the matte's own ceiling (perfect footage: the
+scene rendered through the crop camera without noise or compression, against the room rendered
+there without the object) and the matte of the real footage against that perfect room (what the
+footage costs; the rest of a ``quality`` figure with a clean plate is the background field's).
+The crops are cached in ``--work`` (``NAME-budget.npz``).
+
     flock /tmp/dbb-bench.lock .venv/bin/python bench/bench_preprocess.py quality --work /tmp/dbb-bench-pre
+    flock -s /tmp/dbb-bench.lock .venv/bin/python bench/bench_preprocess.py budget --work /tmp/b --captures sample_data/dynamic
     flock -s /tmp/dbb-bench.lock .venv/bin/python bench/bench_preprocess.py quality --work /tmp/dbb-bench-pre --rematte
     flock -s /tmp/dbb-bench.lock .venv/bin/python bench/bench_preprocess.py quality --work /tmp/q --steps 1000
     flock /tmp/dbb-bench.lock .venv/bin/python bench/bench_preprocess.py speed --work /tmp/dbb-bench-pre
@@ -115,6 +124,20 @@ def _estimated_c2w(dataset: Path, fr: dict) -> np.ndarray:
     return _TRANSFORMS[dataset][round(fr["time"], 4)]
 
 
+def both_passes(crops: list, times: np.ndarray, fill: float, cfg, counts: np.ndarray | None = None) -> list[np.ndarray]:
+    """Straight RGBA (S, S, 4) uint8 of every first-pass crop (:class:`~dbb_capture.crops.ObjectCrop`,
+    in time order, ``times`` (N,) s) after the second pass, as the crops stage runs it: the
+    capture's statistics (``counts``: summed sure object colours where a prediction was a guess),
+    matte again, temporal median over neighbouring frames."""
+    from dbb_capture.crops import follows_previous, rematte as second, vote_neighbours, voted_rgba
+    from dbb_capture.matte import capture_matte
+
+    cap = capture_matte([oc.noise for oc in crops], counts, [oc.room_detail for oc in crops], cfg.sharp_min_detail)
+    alphas = [second(oc, fill, cap, cfg) for oc in crops]
+    linked = follows_previous(times)
+    return [voted_rgba(oc, [alphas[j] for j in vote_neighbours(k, linked)]) for k, oc in enumerate(crops)]
+
+
 def rematte(capture: Path, dataset: Path) -> tuple[Path, Path]:
     """Crop and matte every crop of ``dataset`` again (first pass; then both passes, as the crops
     stage does) with its own poses and background field; writes ``crops/`` of two copies of the
@@ -122,9 +145,9 @@ def rematte(capture: Path, dataset: Path) -> tuple[Path, Path]:
     import shutil
 
     from dbb_capture.background import BackgroundModel
-    from dbb_capture.crops import follows_previous, object_crop, rematte as second, vote_neighbours, voted_rgba
+    from dbb_capture.crops import object_crop
     from dbb_capture.io import open_footage
-    from dbb_capture.matte import MatteConfig, capture_matte, sure_object_counts
+    from dbb_capture.matte import MatteConfig, sure_object_counts
 
     intr = Intrinsics.load(dataset / "camera.json")
     doc = json.loads((dataset / "crops.json").read_text())
@@ -133,19 +156,15 @@ def rematte(capture: Path, dataset: Path) -> tuple[Path, Path]:
     model = BackgroundModel.load(dataset / "background" / "field.pt")
     frames = doc["frames"]
     images = {f.index: f.image for f in open_footage(capture / "video.mp4").read(sorted(fr["source_frame"] for fr in frames))}
-    crops, noises, details, counts = [], [], [], None
+    crops, counts = [], None
     for fr in frames:
         oc = object_crop(images[fr["source_frame"]], intr, _estimated_c2w(dataset, fr), center, radius, up, size, fill,
                          model.render, cfg, model.guessed)
         crops.append(oc)
-        noises.append(oc.noise)
-        details.append(oc.room_detail)
         if oc.guessed is not None and oc.guessed.any():
             c = sure_object_counts(oc.rgba, oc.guessed, cfg.colour_bins)
             counts = c if counts is None else counts + c
-    cap = capture_matte(noises, counts, details, cfg.sharp_min_detail)
-    alphas = [second(oc, fill, cap, cfg) for oc in crops]
-    linked = follows_previous(np.array([fr["time"] for fr in frames]))
+    voted = both_passes(crops, np.array([fr["time"] for fr in frames]), fill, cfg, counts)
     outs = []
     for tag in ("first", "two"):
         out = dataset.parent / f"{dataset.name}-{tag}"
@@ -153,11 +172,131 @@ def rematte(capture: Path, dataset: Path) -> tuple[Path, Path]:
             shutil.rmtree(out)
         shutil.copytree(dataset, out, ignore=shutil.ignore_patterns("images", "masks", "colmap"))
         outs.append(out)
-    for k, (fr, oc) in enumerate(zip(frames, crops)):
-        nb = [alphas[j] for j in vote_neighbours(k, linked)]
-        for out, rgba in zip(outs, (oc.rgba, voted_rgba(oc, nb))):
+    for fr, oc, two in zip(frames, crops, voted):
+        for out, rgba in zip(outs, (oc.rgba, two)):
             cv2.imwrite(str(out / fr["file_path"]), cv2.cvtColor(rgba, cv2.COLOR_RGBA2BGRA))
     return outs[0], outs[1]
+
+
+def synth_scene(capture: Path):
+    """The synthetic capture's scene rebuilt from its ``ground_truth/synth_config.json`` (the
+    renderer's room, table, board and object, exactly as ``dbb-capture synth`` drew them)."""
+    from dbb_capture.board import BoardSpec
+    from dbb_capture.synth import SynthConfig, make_scene
+
+    d = json.loads((capture / "ground_truth" / "synth_config.json").read_text())
+    d = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+    cfg = SynthConfig(**{**d, "board": BoardSpec.from_json(d["board"])})
+    return make_scene(cfg, np.random.default_rng(cfg.seed))
+
+
+def budget_crops(capture: Path, cache: Path, size: int = 64, fill: float = 0.9, samples: int = 4) -> dict:
+    """Per crop of a synthetic capture, through its *true* cameras (arrays (N, S, S[, 3]), cached
+    in ``cache`` (npz)): the observed crop cut from the footage (``observed``), the room without
+    the object rendered through the crop camera (``room``: a perfect background prediction), the
+    scene rendered there without sensor noise or compression (``ideal``: perfect footage), the
+    true coverage through the crop camera (``cover``, 0..1, ``samples`` x ``samples`` per pixel)
+    and the capture's full-frame coverage cut through the crop warp (``warped``, 0..1: what
+    ``score`` compares with); ``times`` (N,) s."""
+    from dbb_capture.crops import crop_camera
+    from dbb_capture.io import open_footage
+    from dbb_capture.synth import Renderer
+
+    if cache.is_file():
+        with np.load(cache) as z:
+            return dict(z)
+    intr = Intrinsics.load(capture / "ground_truth" / "camera.json")
+    gt = json.loads((capture / "ground_truth" / "cameras.json").read_text())["video"]
+    obj = json.loads((capture / "object.json").read_text())
+    center, radius, up = np.array(obj["center"]), obj["radius"], np.array([0.0, 0.0, -1.0])
+    scene = synth_scene(capture)
+    empty = scene.without_object()
+    out = {k: [] for k in ("observed", "room", "ideal", "cover", "warped", "times")}
+    for f in open_footage(capture / "video.mp4").read(range(len(gt))):
+        fr = gt[f.index]
+        c2w = opencv_from_opengl(np.array(fr["transform_matrix"]))
+        cam = crop_camera(c2w, intr, center, radius, up, size, fill)
+        mask = cv2.imread(str(capture / "ground_truth" / "masks" / f"{f.index:05d}.png"), cv2.IMREAD_GRAYSCALE)
+        r = Renderer(cam.intr, samples, adaptive=False)
+        ideal, cover = r.render(scene, cam.c2w, fr["time"])
+        room, _ = r.render(empty, cam.c2w, fr["time"])
+        out["observed"].append(cut_crop(f.image, cam, intr, c2w)[0])
+        out["room"].append(np.clip(np.round(room * 255), 0, 255).astype(np.uint8))
+        out["ideal"].append(np.clip(np.round(ideal * 255), 0, 255).astype(np.uint8))
+        out["cover"].append(cover.astype(np.float32))
+        out["warped"].append(cut_crop(mask[..., None], cam, intr, c2w)[0].reshape(size, size).astype(np.float32) / 255)
+        out["times"].append(fr["time"])
+    arrays = {k: np.stack(v) for k, v in out.items()}
+    np.savez_compressed(cache, **arrays)
+    return arrays
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Per-crop IoU (N,) of boolean masks (N, H, W)."""
+    return (a & b).sum((1, 2)) / np.maximum((a | b).sum((1, 2)), 1)
+
+
+def outline_split(alpha: np.ndarray, truth: np.ndarray, px: float = 1.5) -> dict:
+    """Where a matte (N, H, W) bool errs against ``truth`` (N, H, W) bool, as shares of the true
+    object's area: missed / added within ``px`` of the true outline, and further away."""
+    from scipy.ndimage import distance_transform_edt
+
+    near = np.stack([np.minimum(distance_transform_edt(t), distance_transform_edt(~t)) <= px for t in truth])
+    area = max(int(truth.sum()), 1)
+    return {"missed_outline": float((truth & ~alpha & near).sum() / area),
+            "added_outline": float((~truth & alpha & near).sum() / area),
+            "missed_inside": float((truth & ~alpha & ~near).sum() / area),
+            "added_outside": float((~truth & alpha & ~near).sum() / area)}
+
+
+def budget(work: Path, captures: list[Path], fill: float = 0.9) -> list[dict]:
+    """The matte's error budget on synthetic captures, through their true cameras:
+    (a) the footage ceiling: the true coverage cut through the crop warp against the coverage
+    through the crop camera (what resampling the footage alone costs at alpha > 0.5);
+    (b0) the matte's ceiling: the matte (both passes) of a noise-free render through the crop
+    camera against the room rendered there (perfect footage, perfect background);
+    (b) the matte of the real footage's crop against the perfect background (what the footage's
+    noise, compression and chroma cost the matte; the rest of the ``quality`` figure is the
+    background field's)."""
+    from dbb_capture.crops import ObjectCrop
+    from dbb_capture.matte import MatteConfig, matte_and_noise, sphere_disc
+
+    cfg = MatteConfig()
+    rows = []
+    for cap in captures:
+        z = budget_crops(cap, work / f"{cap.name}-budget.npz", fill=fill)
+        size = z["observed"].shape[1]
+        disc = sphere_disc(size, fill, cfg.disc_margin)
+        cover, warped = z["cover"] > 0.5, z["warped"] > 0.5
+        row = {"capture": cap.name, "crops": len(cover),
+               "a_warp_vs_camera": float(np.median(iou(warped, cover))),
+               "a_warp_vs_camera_p10": float(np.percentile(iou(warped, cover), 10))}
+        for tag, images, truth in (("b0_ideal", z["ideal"], cover), ("b_footage", z["observed"], warped)):
+            crops = []
+            for obs, room in zip(images, z["room"]):
+                rgba, noise, detail = matte_and_noise(obs, room, disc, cfg)
+                crops.append(ObjectCrop(None, obs, room, rgba, False, None, None, noise, detail))
+            two = np.stack(both_passes(crops, z["times"], fill, cfg))[..., 3] > 127
+            first = np.stack([oc.rgba for oc in crops])[..., 3] > 127
+            ious = iou(two, truth)
+            row.update({f"{tag}_first": float(np.median(iou(first, truth))), tag: float(np.median(ious)),
+                        f"{tag}_p10": float(np.percentile(ious, 10)),
+                        **{f"{tag}_{k}": v for k, v in outline_split(two, truth).items()}})
+            if tag == "b_footage":
+                row["b_footage_vs_camera"] = float(np.median(iou(two, cover)))
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    print("\n| capture | crops | (a) warp vs crop camera | (b0) matte, perfect footage + room | "
+          "(b) matte, footage + perfect room | (b) first pass | (b) errors: missed / added at the outline, "
+          "missed / added elsewhere (% of area) |")
+    print("|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['capture']} | {r['crops']} | {r['a_warp_vs_camera']:.3f} ({r['a_warp_vs_camera_p10']:.3f}) | "
+              f"{r['b0_ideal']:.3f} ({r['b0_ideal_p10']:.3f}) | {r['b_footage']:.3f} ({r['b_footage_p10']:.3f}) | "
+              f"{r['b_footage_first']:.3f} | {100 * r['b_footage_missed_outline']:.1f} / "
+              f"{100 * r['b_footage_added_outline']:.1f} / {100 * r['b_footage_missed_inside']:.1f} / "
+              f"{100 * r['b_footage_added_outside']:.1f} |")
+    return rows
 
 
 def run_preprocess(capture: Path, out: Path, *args: str) -> float:
@@ -262,7 +401,7 @@ def speed(work: Path, minutes: float) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("what", choices=["quality", "speed"])
+    ap.add_argument("what", choices=["quality", "speed", "budget"])
     ap.add_argument("--work", type=Path, default=Path("/tmp/dbb-bench-pre"))
     ap.add_argument("--minutes", type=float, default=2.0, help="background field training budget")
     ap.add_argument("--steps", type=int, default=None,
@@ -277,6 +416,8 @@ def main() -> None:
     a.work.mkdir(parents=True, exist_ok=True)
     if a.what == "quality":
         quality(a.work, a.captures, a.minutes, a.rescore, a.rematte, a.steps)
+    elif a.what == "budget":
+        budget(a.work, a.captures)
     else:
         speed(a.work, a.minutes)
 

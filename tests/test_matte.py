@@ -296,3 +296,36 @@ def test_edge_gain_scales_the_compositing_alpha_of_mixed_pixels():
     assert np.allclose(plain[4:12, 8], 0.4, atol=0.02) and np.allclose(gained[4:12, 8], 0.5, atol=0.025)
     assert (gained[:, :6] == 1).all() and (gained[:, 10:] == 0).all()
     assert np.allclose(gained[plain < 1], np.minimum(1, 1.25 * plain[plain < 1]), atol=1e-6)
+
+
+def test_shaded_rim_alpha_recovers_the_coverage_where_the_plain_equation_runs_low():
+    """A rim shaded darker than the object's inside: I = (1 - a) B + a (s F) with s < 1. The
+    plain compositing equation (F from inside) reads it low; the shaded-rim model recovers a
+    wherever room and object differ in hue, and leaves same-hue pixels to the plain equation."""
+    from dbb_capture.matte import _edge_alpha, rim_alpha
+
+    rng = np.random.default_rng(3)
+    F = rng.uniform(40, 230, (200, 3))
+    B = rng.uniform(40, 230, (200, 3))
+    a = rng.uniform(0.1, 0.9, 200)
+    s = rng.uniform(0.6, 1.1, 200)
+    I = (1 - a[:, None]) * B + a[:, None] * s[:, None] * F
+    rim, holds = rim_alpha(I, B, F, 0.15)
+    sin = np.sqrt(1 - ((B * F).sum(1) / np.linalg.norm(B, axis=1) / np.linalg.norm(F, axis=1)) ** 2)
+    assert holds[sin > 0.2].all()
+    assert np.abs(rim - a)[holds].max() < 1e-6
+    grey = rim_alpha(np.array([[100.0, 100, 100]]), np.array([[150.0, 150, 150]]), np.array([[50.0, 50, 50]]), 0.15)
+    assert not grey[1][0]                               # same hue: the model cannot tell shading from coverage
+
+    F, B = np.array([220.0, 120.0, 60.0]), np.array([90.0, 110.0, 60.0])   # a bright object on a darker room
+    obs = np.tile(B, (16, 16, 1))
+    obs[:, :8] = F
+    obs[:, 8] = 0.6 * (0.7 * F) + 0.4 * B               # a column 60% covered by a rim at 70% brightness
+    core = np.zeros((16, 16), bool)
+    core[:, :8] = True
+    pred = np.tile(B, (16, 16, 1)).astype(np.uint8)
+    plain = _edge_alpha(obs.astype(np.uint8), pred, core, 1, 1.0)
+    shaded = _edge_alpha(obs.astype(np.uint8), pred, core, 1, 1.0, 0.15)
+    assert np.all(plain[4:12, 8] < 0.45)                # the plain equation calls it mostly room
+    assert np.allclose(shaded[4:12, 8], 0.6, atol=0.02)
+    assert (shaded[:, :6] == 1).all() and (shaded[:, 10:] == 0).all()
