@@ -53,7 +53,7 @@ class MatteConfig:
     min_blob: float = 0.1          # pieces under this fraction of the largest are dropped (specks; parts stay joined)
     edge_px: int = 1               # width of the band where alpha is fractional
     edge_gain: float = 1.25        # the compositing alpha of a shaded rim runs low (F from inside is brighter): x this
-    rim_min_sin: float = 0.15      # shaded-rim alpha where room and object colours differ by this much in hue (sin of their angle; 1: off)
+    rim_min_off: float = 0.3       # shaded-rim alpha where the room lies off the object's shading line by this share of |F - B| (inf: off)
     guided_px: int = 3             # edge-aware smoothing of the soft alpha before the decision (0: off)
     guided_eps: float = 1e-3
     colour_bins: int = 32          # per channel, of the room/object colour histograms (8 levels a bin)
@@ -166,15 +166,17 @@ def _keep_large(mask: np.ndarray, min_blob: float) -> np.ndarray:
     return np.isin(lab, keep)
 
 
-def rim_alpha(I: np.ndarray, B: np.ndarray, F: np.ndarray, min_sin: float) -> tuple[np.ndarray, np.ndarray]:
+def rim_alpha(I: np.ndarray, B: np.ndarray, F: np.ndarray, min_off: float) -> tuple[np.ndarray, np.ndarray]:
     """Coverage (N,) of mixed pixels by a shaded-rim compositing model, and where it holds (N,) bool.
 
     ``I``, ``B``, ``F`` (N, 3) float: observed colour, predicted room, the object's colour from
     inside. A rim is the object's colour scaled by its shading (darker or brighter than F), so
     I = (1 - a) B + s F with an unknown scale s: a least-squares fit of the two coefficients;
-    the coverage is 1 minus the room's. It needs room and object colours of different hue (the
-    sine of the angle between B and F at least ``min_sin``), a non-negative object part and a
-    fit within 30% of |F - B| (plus 10 levels).
+    the coverage is 1 minus the room's. It needs a room colour off the object's shading line
+    (the line from black through F) by at least ``min_off`` |F - B| (on or near that line shading
+    and coverage cannot be told apart, and the fit's noise grows as |F - B| over that distance;
+    0.3 keeps it within about 3 times the plain equation's), a non-negative object part and a fit
+    within 30% of |F - B| (plus 10 levels).
     """
     bb, ff, bf = (B * B).sum(-1), (F * F).sum(-1), (B * F).sum(-1)
     det = bb * ff - bf * bf
@@ -182,22 +184,23 @@ def rim_alpha(I: np.ndarray, B: np.ndarray, F: np.ndarray, min_sin: float) -> tu
     room = (ib * ff - i_f * bf) / np.maximum(det, 1e-6)
     obj = (i_f * bb - ib * bf) / np.maximum(det, 1e-6)
     resid = np.linalg.norm(I - room[:, None] * B - obj[:, None] * F, axis=1)
-    holds = ((det > min_sin ** 2 * bb * ff) & (obj >= -0.05)
-             & (resid < 0.3 * np.linalg.norm(F - B, axis=1) + 10.0))
+    fb = np.linalg.norm(F - B, axis=1)
+    off = np.sqrt(np.maximum(det, 0) / np.maximum(ff, 1e-6))       # |B minus its projection on F|
+    holds = (det > 0) & (off >= min_off * fb) & (obj >= -0.05) & (resid < 0.3 * fb + 10.0)
     return np.clip(1.0 - room, 0, 1), holds
 
 
 def _edge_alpha(observed: np.ndarray, predicted: np.ndarray, core: np.ndarray, edge_px: int,
-                gain: float = 1.0, rim_min_sin: float = 1.0) -> np.ndarray:
+                gain: float = 1.0, rim_min_off: float = np.inf) -> np.ndarray:
     """Fractional alpha (H, W) float32 in a band around ``core`` by the compositing equation.
 
     With the object's colour F taken from the nearest surely-inside pixel and the background
     B predicted, observed I = a F + (1 - a) B gives a = (I - B).(F - B) / |F - B|^2, times
     ``gain``: a shaded object's rim is darker than the pixels inside that give F, so it reads
     as part room (against the true coverage the plain equation runs 0.03-0.1 low on fractional
-    pixels of the synthetic captures; 1.25 leaves -0.01 to +0.04). Where room and object differ
-    in hue (``rim_min_sin`` < 1), the shaded rim is modelled instead (:func:`rim_alpha`): the
-    rim's shading then costs nothing.
+    pixels of the synthetic captures; 1.25 leaves -0.01 to +0.04). Where the room's colour lies
+    off the object's shading line (``rim_min_off``, :func:`rim_alpha`), the shaded rim is
+    modelled instead: the rim's shading then costs nothing.
     """
     from scipy.ndimage import distance_transform_edt
 
@@ -224,8 +227,8 @@ def _edge_alpha(observed: np.ndarray, predicted: np.ndarray, core: np.ndarray, e
     resid = np.linalg.norm(I - B - a[:, None] * fb, axis=1)
     mixed = (denom > 30.0 ** 2) & (resid < 0.3 * np.sqrt(denom))
     a = np.where(mixed, np.clip(gain * a, 0, 1), core[band].astype(np.float32))
-    if rim_min_sin < 1:
-        rim, holds = rim_alpha(I, B, F, rim_min_sin)
+    if np.isfinite(rim_min_off):
+        rim, holds = rim_alpha(I, B, F, rim_min_off)
         a = np.where(holds, rim, a)
     alpha[band] = a
     return alpha
@@ -436,7 +439,7 @@ def matte_and_noise(observed: np.ndarray, predicted: np.ndarray, disc: np.ndarra
         for _ in range(3):
             kept = cv2.dilate(kept, np.ones((3, 3), np.uint8)) & core
         core = _fill_holes(kept.astype(bool))
-    alpha = _edge_alpha(observed, predicted, core, cfg.edge_px, cfg.edge_gain, cfg.rim_min_sin) * disc
+    alpha = _edge_alpha(observed, predicted, core, cfg.edge_px, cfg.edge_gain, cfg.rim_min_off) * disc
     alpha[alpha < 0.02] = 0
     return straight_rgba(observed, predicted, alpha), measured, detail
 

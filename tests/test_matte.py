@@ -310,11 +310,11 @@ def test_shaded_rim_alpha_recovers_the_coverage_where_the_plain_equation_runs_lo
     a = rng.uniform(0.1, 0.9, 200)
     s = rng.uniform(0.6, 1.1, 200)
     I = (1 - a[:, None]) * B + a[:, None] * s[:, None] * F
-    rim, holds = rim_alpha(I, B, F, 0.15)
-    sin = np.sqrt(1 - ((B * F).sum(1) / np.linalg.norm(B, axis=1) / np.linalg.norm(F, axis=1)) ** 2)
-    assert holds[sin > 0.2].all()
+    rim, holds = rim_alpha(I, B, F, 0.3)
+    off = np.linalg.norm(B - ((B * F).sum(1) / (F * F).sum(1))[:, None] * F, axis=1)
+    assert holds[off > 0.35 * np.linalg.norm(F - B, axis=1)].all() and not holds[off < 0.25 * np.linalg.norm(F - B, axis=1)].any()
     assert np.abs(rim - a)[holds].max() < 1e-6
-    grey = rim_alpha(np.array([[100.0, 100, 100]]), np.array([[150.0, 150, 150]]), np.array([[50.0, 50, 50]]), 0.15)
+    grey = rim_alpha(np.array([[100.0, 100, 100]]), np.array([[150.0, 150, 150]]), np.array([[50.0, 50, 50]]), 0.3)
     assert not grey[1][0]                               # same hue: the model cannot tell shading from coverage
 
     F, B = np.array([220.0, 120.0, 60.0]), np.array([90.0, 110.0, 60.0])   # a bright object on a darker room
@@ -325,7 +325,7 @@ def test_shaded_rim_alpha_recovers_the_coverage_where_the_plain_equation_runs_lo
     core[:, :8] = True
     pred = np.tile(B, (16, 16, 1)).astype(np.uint8)
     plain = _edge_alpha(obs.astype(np.uint8), pred, core, 1, 1.0)
-    shaded = _edge_alpha(obs.astype(np.uint8), pred, core, 1, 1.0, 0.15)
+    shaded = _edge_alpha(obs.astype(np.uint8), pred, core, 1, 1.0, 0.3)
     assert np.all(plain[4:12, 8] < 0.45)                # the plain equation calls it mostly room
     assert np.allclose(shaded[4:12, 8], 0.6, atol=0.02)
     assert (shaded[:, :6] == 1).all() and (shaded[:, 10:] == 0).all()
