@@ -9,6 +9,13 @@
              .venv/bin/dbb-capture preprocess sample_data/dynamic -o /tmp/dyn_ds --background-minutes 1
              .venv/bin/python bench/bench_rssm.py quality /tmp/dyn_ds --capture sample_data/dynamic \
                  --run /tmp/rssm_run --minutes 15
+    protocols: the gain over copy-first of one sampled rollout (the run-time protocol, the bar's),
+             of the mean of 8 and of the best of 8 (extra, labelled: no run-time stepper draws those)
+             .venv/bin/python bench/bench_rssm.py protocols /tmp/rssm_run /tmp/dyn_ds
+    subset:  the same dataset trained on less footage (the first --seconds; same test split)
+             .venv/bin/python bench/bench_rssm.py subset /tmp/long_ds --seconds 24 -o /tmp/long_24s
+    first-step: what the run-time first step loses against copying (its candidates, mask, flow)
+             .venv/bin/python bench/bench_rssm.py first-step /tmp/rssm_run /tmp/dyn_ds
     blurred-copy: what copy-first blurred more at each step (a hedge that never moves) scores
              .venv/bin/python bench/bench_rssm.py blurred-copy /tmp/dyn_ds --sigma 0.5 --sigma 1
 
@@ -141,6 +148,112 @@ def blurred_copy(dataset: Path, sigma: float, size: int = 64) -> dict:
             "gain_db": round(float(np.mean(gains)), 3)}
 
 
+@torch.no_grad()
+def first_step(run: Path, dataset: Path, split: str = "test", temperature: float = 1.0, seed: int = 0,
+               model: rssm.Rssm | None = None) -> dict:
+    """What the run-time first step does on the windows of ``split`` (one sampled z_1 per window, as
+    ``dbb-export render``): PSNR (dB) of the frame, of copy-first, and of the decoder's candidates
+    alone (the warped context frame with mask 1, the generated content with mask 0, the context
+    frame as is), the mean warp share on the object (truth or context alpha > 0.5) and the flow's
+    mean and 95th-percentile length in pixels there (skip path only)."""
+    model = (model if model is not None else rssm.load_model(run)).eval()
+    cfg = model.cfg
+    data = rssm.load_sequences(dataset, cfg.size)
+    starts = data.starts(split)
+    x, views = rssm._batch(data, starts, torch.device("cpu"))          # premultiplied (W, L, 4, S, S)
+    torch.manual_seed(seed)
+    pe = rssm.view_encoding(views, cfg.view_freqs)
+    emb = model.encoder(x[:, 0])
+    h0 = x.new_zeros(len(starts), cfg.deter)
+    qm, qs = model.post_stats(h0, emb, pe[:, 0])
+    z0 = qm + temperature * qs * torch.randn_like(qs)
+    h1 = model.transition(h0, z0)
+    pm, ps = model.prior_stats(h1)
+    z1 = pm + temperature * ps * torch.randn_like(ps)
+    ctx = model.encoder.features(x[:, 0])
+    dec = model.decoder
+    feat = rssm.decoder_features(h1, z1, pe[:, 1], pe[:, 0], cfg.skip, cfg.decoder_view, cfg.view_freqs,
+                                 pe[:, 0] if dec.accum else None)
+    frame = model.decoder(feat, ctx, x[:, 0])
+    truth, ctx_pm = x[:, 1].numpy(), x[:, 0]
+    ps_ = lambda a: float(np.mean([rssm.psnr(p, t) for p, t in zip(np.asarray(a), truth)]))
+    out = {"windows": len(starts), "split": split, "psnr_db": ps_(frame), "copy_first_db": ps_(ctx_pm)}
+    if cfg.skip:
+        xh = dec.heads(feat, ctx)
+        flow = torch.tanh(xh[:, -2:]) * (dec.max_step_flow if dec.accum else dec.max_flow)
+        grid = dec.grid + flow.permute(0, 2, 3, 1)
+        warped = torch.nn.functional.grid_sample(ctx_pm, grid, mode="bilinear", padding_mode="zeros",
+                                                 align_corners=False)
+        gen = torch.sigmoid(xh[:, :4])
+        gen = torch.cat([gen[:, :3] * gen[:, 3:4], gen[:, 3:4]], 1)
+        obj = ((x[:, 1, 3] > 0.5) | (x[:, 0, 3] > 0.5)).numpy()
+        share = torch.softmax(xh[:, 4:7], 1)[:, 1] if dec.copy3 else torch.sigmoid(xh[:, 4])
+        px = flow.norm(dim=1).numpy() * cfg.size / 2
+        out.update({"warped_only_db": ps_(warped), "generated_only_db": ps_(gen),
+                    "warp_share_on_object": round(float(share.numpy()[obj].mean()), 3),
+                    "flow_px_mean_on_object": round(float(px[obj].mean()), 3),
+                    "flow_px_p95_on_object": round(float(np.percentile(px[obj], 95)), 3)})
+    return {k: round(v, 3) if isinstance(v, float) else v for k, v in out.items()}
+
+
+@torch.no_grad()
+def protocols(run: Path, dataset: Path, samples: int = 8, temperature: float = 1.0, max_windows: int = 64,
+              model: rssm.Rssm | None = None) -> dict:
+    """Open-loop gain over copy-first (dB, test windows) under three protocols: ``one_sample`` (one
+    sampled rollout per window: the run-time protocol, what the bar is claimed on), ``mean_of_samples``
+    (the mean frame of ``samples`` rollouts: a hedge no run-time stepper draws) and ``best_of_samples``
+    (each window's best rollout by its 10-step PSNR, chosen with the truth: SVG/SAVP's oracle)."""
+    model = (model if model is not None else rssm.load_model(run)).eval()
+    data = rssm.load_sequences(dataset, model.cfg.size)
+    starts = data.starts("test")
+    if len(starts) > max_windows:
+        starts = starts[np.linspace(0, len(starts) - 1, max_windows).round().astype(int)]
+    x, views = rssm._batch(data, starts, torch.device("cpu"))
+    first = torch.from_numpy(data.rgba[starts]).permute(0, 3, 1, 2).float() / 255.0
+    truth = x[:, 1:].numpy()
+    runs = []
+    for i in range(samples):
+        torch.manual_seed(i)
+        runs.append(rssm.premultiply(rssm.rollout(rssm.Stepper(model, temperature), first, views)).numpy())
+    runs = np.stack(runs)                                                   # (N, W, T, 4, S, S)
+
+    def window_psnr(pred: np.ndarray) -> np.ndarray:                        # (W, T, ...) -> (W,) mean over steps
+        return np.array([[rssm.psnr(pred[w, t], truth[w, t]) for t in range(truth.shape[1])]
+                         for w in range(len(starts))]).mean(1)
+
+    copy = window_psnr(np.broadcast_to(x[:, :1].numpy(), truth.shape)).mean()
+    per = np.stack([window_psnr(r) for r in runs])                          # (N, W)
+    return {"windows": len(starts), "samples": samples, "temperature": temperature,
+            "gain_vs_copy_first_db": {"one_sample": round(float(per[0].mean() - copy), 3),
+                                      "one_sample_mean_over_seeds": round(float(per.mean() - copy), 3),
+                                      "mean_of_samples": round(float(window_psnr(runs.mean(0)).mean() - copy), 3),
+                                      "best_of_samples": round(float(per.max(0).mean() - copy), 3)}}
+
+
+def subset(dataset: Path, out: Path, seconds: float) -> dict:
+    """A copy of a preprocess dataset's crops.json that trains on less footage: the training frames
+    of the first ``seconds`` of the capture and the same test frames and windows (images linked,
+    frame indices renumbered; later training frames dropped, so "near" sees only the kept ones)."""
+    doc = json.loads((Path(dataset) / "crops.json").read_text())
+    frames = doc["frames"]
+    t0 = min(f["time"] for f in frames)
+    keep = [i for i, f in enumerate(frames) if f["split"] == "test" or f["time"] - t0 < seconds]
+    new = {old: i for i, old in enumerate(keep)}
+    length = int(doc.get("sequence_length", 11))
+    seqs = [{**q, "start": new[q["start"]]} for q in doc["sequences"]
+            if all(q["start"] + j in new for j in range(length))
+            and new[q["start"] + length - 1] - new[q["start"]] == length - 1]
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    for name in {Path(f["file_path"]).parts[0] for f in frames}:
+        link = out / name
+        if not link.exists():
+            link.symlink_to((Path(dataset) / name).resolve())
+    (out / "crops.json").write_text(json.dumps({**doc, "frames": [frames[i] for i in keep], "sequences": seqs}))
+    count = lambda sp: sum(q["split"] == sp for q in seqs)
+    return {"seconds": seconds, "frames": len(keep), "train_windows": count("train"), "test_windows": count("test")}
+
+
 def overrides(pairs: list[str]) -> tuple[rssm.RssmConfig, rssm.TrainConfig]:
     """Model and training settings from ``name=value`` pairs (fields of RssmConfig / TrainConfig)."""
     cfg, tcfg = rssm.RssmConfig(), rssm.TrainConfig()
@@ -240,12 +353,32 @@ def main() -> None:
                    help="a RssmConfig or TrainConfig setting other than its default (repeatable)")
     q.add_argument("--start-frame", type=int, default=None,
                    help="fixed-camera footage: start the still-view rollout at this frame (default: the report's)")
+    f = sub.add_parser("first-step", help="what the run-time first step loses: its candidates, mask and flow")
+    f.add_argument("run", type=Path)
+    f.add_argument("dataset", type=Path)
+    f.add_argument("--split", default="test", choices=["train", "test"])
+    f.add_argument("--temperature", type=float, default=1.0)
+    r = sub.add_parser("protocols", help="gain over copy-first: one sample (run time), mean of samples, best of samples")
+    r.add_argument("run", type=Path)
+    r.add_argument("dataset", type=Path)
+    r.add_argument("--samples", type=int, default=8)
+    r.add_argument("--temperature", type=float, default=1.0)
+    d = sub.add_parser("subset", help="a dataset with the training frames of the first SECONDS only (same test split)")
+    d.add_argument("dataset", type=Path)
+    d.add_argument("--seconds", type=float, required=True)
+    d.add_argument("-o", "--output", type=Path, required=True)
     b = sub.add_parser("blurred-copy", help="the score of copy-first blurred more at each step (a hedge)")
     b.add_argument("dataset", type=Path)
     b.add_argument("--sigma", type=float, action="append", default=[], help="pixels at step 1 (repeatable)")
     a = ap.parse_args()
     torch.set_num_threads(getattr(a, "threads", 1))
-    if a.cmd == "blurred-copy":
+    if a.cmd == "protocols":
+        out = protocols(a.run, a.dataset, a.samples, a.temperature)
+    elif a.cmd == "subset":
+        out = subset(a.dataset, a.output, a.seconds)
+    elif a.cmd == "first-step":
+        out = first_step(a.run, a.dataset, a.split, a.temperature)
+    elif a.cmd == "blurred-copy":
         out = [blurred_copy(a.dataset, s) for s in (a.sigma or [0.5])]
     elif a.cmd == "speed":
         out = [{**speed(int(s), a.steps, a.set, a.repeat), "settings": a.set} for s in a.sizes.split(",")]

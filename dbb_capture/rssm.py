@@ -83,7 +83,12 @@ class RssmConfig:
     max_flow: float = 0.5          # largest flow, in image half-widths (grid_sample units)
     compose: str = "blend"         # skip path: "copy3" = per-pixel softmax over the context frame as is,
                                    # warped, and generated (CDNA-style; static parts copied exactly);
-                                   # "blend" = one mask between warped and generated (earlier runs)
+                                   # "blend" = one mask between warped and generated (earlier runs);
+                                   # "accum" = the context frame resampled through a warp that each step
+                                   # moves a little further (accumulated_warp), blended with generated content
+    max_step_flow: float = 0.25    # "accum": largest flow of one step, in image half-widths
+    warp_leak: float = 0.0         # "accum": each step the warp's displacement shrinks by this fraction
+                                   # (toward the context frame's layout), so its errors stay bounded
     energy_scale: float = 0.0      # weight of the motion-energy match of the open loop (see energy_match)
     prior_first: bool = True       # also decode frame 1 from a prior sample at h_1 (the run-time first step)
     open_loop_from: int = 1        # the training open loop starts from the filtering state of this frame:
@@ -110,8 +115,12 @@ class RssmConfig:
         for f in ("deter", "stoch", "hidden", "embed", "enc_depth", "dec_depth", "view_freqs"):
             if getattr(self, f) < 1:
                 raise DbbError(f"RSSM {f} must be positive")
-        if self.compose not in ("copy3", "blend"):
-            raise DbbError(f"RSSM compose must be copy3 or blend, not {self.compose!r}")
+        if self.compose not in ("copy3", "blend", "accum"):
+            raise DbbError(f"RSSM compose must be copy3, blend or accum, not {self.compose!r}")
+        if self.compose == "accum" and not self.skip:
+            raise DbbError("RSSM compose accum warps the context frame: it needs skip")
+        if not 0.0 <= self.warp_leak < 1.0:
+            raise DbbError(f"RSSM warp_leak must be in [0, 1), not {self.warp_leak}")
         if self.filter_decode not in ("posterior", "prior"):
             raise DbbError(f"RSSM filter_decode must be posterior or prior, not {self.filter_decode!r}")
         if self.decoder_view not in ("absolute", "relative", "both"):
@@ -190,16 +199,59 @@ def view_delta_encoding(pe: torch.Tensor, ctx_pe: torch.Tensor, freqs: int) -> t
 
 
 def decoder_features(h: torch.Tensor, z: torch.Tensor, pe: torch.Tensor, ctx_pe: torch.Tensor, skip: bool,
-                     decoder_view: str, freqs: int) -> torch.Tensor:
+                     decoder_view: str, freqs: int, prev_pe: torch.Tensor | None = None) -> torch.Tensor:
     """The decoder's input (N, deter + stoch + views): the states and what it is told of the
-    current view ``pe`` and (skip path) the context frame's ``ctx_pe`` (see ``RssmConfig.decoder_view``)."""
+    current view ``pe`` and (skip path) the context frame's ``ctx_pe`` (see ``RssmConfig.decoder_view``);
+    with ``prev_pe`` (the previous frame's view, ``compose="accum"``) also the change of view since
+    that frame, which the step's flow has to follow."""
     if not skip:
         return torch.cat([h, z, pe], -1)
     if decoder_view == "relative":
-        return torch.cat([h, z, view_delta_encoding(pe, ctx_pe, freqs)], -1)
-    if decoder_view == "both":
-        return torch.cat([h, z, pe, ctx_pe, view_delta_encoding(pe, ctx_pe, freqs)], -1)
-    return torch.cat([h, z, pe, ctx_pe], -1)
+        parts = [h, z, view_delta_encoding(pe, ctx_pe, freqs)]
+    elif decoder_view == "both":
+        parts = [h, z, pe, ctx_pe, view_delta_encoding(pe, ctx_pe, freqs)]
+    else:
+        parts = [h, z, pe, ctx_pe]
+    if prev_pe is not None:
+        parts.append(view_delta_encoding(pe, prev_pe, freqs))
+    return torch.cat(parts, -1)
+
+
+def identity_grid(n: int, size: int, device: torch.device | None = None) -> torch.Tensor:
+    """Pixel-centre sampling grid of ``grid_sample`` (align_corners=False), (n, S, S, 2) as (x, y) in [-1, 1]."""
+    lin = (torch.arange(size, dtype=torch.float32, device=device) * 2.0 + 1.0) / size - 1.0
+    gy, gx = torch.meshgrid(lin, lin, indexing="ij")
+    return torch.stack([gx, gy], -1)[None].expand(n, -1, -1, -1).contiguous()
+
+
+def accumulated_warp(grid: torch.Tensor, flow: torch.Tensor, base: torch.Tensor, leak: float = 0.0) -> torch.Tensor:
+    """Where each pixel of the next frame comes from in the context frame, (N, S, S, 2) grid_sample
+    coordinates: ``grid`` the same for the current frame, ``flow`` (N, 2, S, S) the step's motion
+    as a backward flow (the next frame's pixel p was at p + flow(p) in the current one), ``base``
+    the identity grid (1, S, S, 2) (:func:`identity_grid`).
+
+    The composition grid(p + flow(p)) resamples the smooth coordinate field, never the image, so
+    a part that travels far over many steps stays as sharp as one resampling of the context frame,
+    and a still part (flow 0) keeps its coordinates exactly. ``leak`` > 0 then shrinks the
+    displacement from ``base`` by that fraction: a step's error no longer persists for ever
+    (errors stay within about error / leak), and a part must be held where it is by the flow.
+    """
+    b = base.to(flow.dtype)
+    g = F.grid_sample(grid.permute(0, 3, 1, 2), b + flow.permute(0, 2, 3, 1), mode="bilinear",
+                      padding_mode="border", align_corners=False).permute(0, 2, 3, 1)
+    return g if leak == 0.0 else b + (1.0 - leak) * (g - b)
+
+
+def warp_maps(maps: list[torch.Tensor], grid: torch.Tensor) -> list[torch.Tensor]:
+    """The context frame's encoder maps moved to where their content is now: each map (N, C, r, r)
+    resampled through ``grid`` (N, S, S, 2) averaged down to r x r (the identity grid leaves them as they are)."""
+    g = grid.permute(0, 3, 1, 2)
+    out: list[torch.Tensor] = []
+    for m in maps:
+        r = m.shape[-1]
+        gr = F.adaptive_avg_pool2d(g, r).permute(0, 2, 3, 1)
+        out.append(F.grid_sample(m, gr, mode="bilinear", padding_mode="border", align_corners=False))
+    return out
 
 
 # --------------------------------------------------------------------------- networks
@@ -253,7 +305,11 @@ class Decoder(nn.Module):
     candidates, the context frame as is, the context frame warped by the flow, and generated
     content; it starts close to copying, so static parts are copied exactly (no resampling
     blur) and only what moves is warped or drawn. ``"blend"``: one mask between the warped
-    context frame and generated content.
+    context frame and generated content. ``"accum"`` (:meth:`accum_step`): the flow is one
+    step's motion, composed with the warp so far (:func:`accumulated_warp`), so parts may travel
+    anywhere in the frame over many steps while the frame stays one resampling of the context
+    frame; the context maps are moved along (:func:`warp_maps`), so the decoder sees where
+    things are now; it starts as the context frame exactly (zero flow, mask ~95 % warp).
     """
 
     def __init__(self, cfg: RssmConfig):
@@ -263,9 +319,13 @@ class Decoder(nn.Module):
         self.skip = bool(cfg.skip)
         self.max_flow = float(cfg.max_flow)
         self.copy3 = self.skip and cfg.compose == "copy3"
+        self.accum = self.skip and cfg.compose == "accum"
+        self.max_step_flow = float(cfg.max_step_flow)
+        self.warp_leak = float(cfg.warp_leak)
         # With the skip path the decoder also sees the context frame's viewpoint: warping that
         # frame to the current view needs to know where it was seen from.
-        n_pe = 4 * cfg.view_freqs * ({"absolute": 2, "relative": 1, "both": 3}[cfg.decoder_view] if self.skip else 1)
+        n_pe = 4 * cfg.view_freqs * ({"absolute": 2, "relative": 1, "both": 3}[cfg.decoder_view] + int(self.accum)
+                                     if self.skip else 1)
         self.fc = nn.Sequential(nn.Linear(cfg.deter + cfg.stoch + n_pe, cfg.hidden), nn.SiLU(),
                                 nn.Linear(cfg.hidden, ch[0] * 16))
         enc = _enc_channels(cfg)[::-1] if self.skip else [0] * len(ch)      # at 4, 8, ..., S/2
@@ -274,15 +334,15 @@ class Decoder(nn.Module):
         self.ups = nn.ModuleList([nn.ConvTranspose2d(c_in + c_skip, c_out, 4, 2, 1)
                                   for c_in, c_skip, c_out in zip(ch, enc, ch[1:] + [n_out])])
         # Pixel-centre sampling grid of grid_sample (align_corners=False), (1, S, S, 2) as (x, y).
-        lin = (torch.arange(cfg.size, dtype=torch.float32) * 2.0 + 1.0) / cfg.size - 1.0
-        gy, gx = torch.meshgrid(lin, lin, indexing="ij")
-        self.register_buffer("grid", torch.stack([gx, gy], -1)[None], persistent=False)
+        self.register_buffer("grid", identity_grid(1, cfg.size), persistent=False)
         if self.skip:                     # start close to copying the context frame, unwarped
             with torch.no_grad():
                 last = self.ups[-1]
                 last.weight[:, 4:].mul_(0.1)
                 last.bias[4:] = 0.0
-                last.bias[4] = 3.0 if self.copy3 else 1.0     # copy3: ~90 % copy at the start
+                last.bias[4] = 3.0 if self.copy3 or self.accum else 1.0     # ~90-95 % copy at the start
+                if self.accum:            # zero flow: the first steps are the context frame exactly
+                    last.weight[:, 5:7] = 0.0
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kw):
         # Runs written before the skip path: ``convs`` was a Sequential (conv, SiLU, conv, ...).
@@ -291,9 +351,8 @@ class Decoder(nn.Module):
             state_dict[f"{prefix}ups.{int(i) // 2}.{name}"] = state_dict.pop(k)
         super()._load_from_state_dict(state_dict, prefix, *args, **kw)
 
-    def forward(self, feat: torch.Tensor, ctx: list[torch.Tensor], ctx_pm: torch.Tensor) -> torch.Tensor:
-        """``ctx``: context maps per frame (coarsest first, as :meth:`Encoder.features`), ``ctx_pm``
-        the premultiplied context frame (N, 4, S, S); both ignored without ``skip``."""
+    def heads(self, feat: torch.Tensor, ctx: list[torch.Tensor]) -> torch.Tensor:
+        """The last layer's output (N, 4 | 7 | 9, S, S) before any compositing (see ``forward``)."""
         x = F.silu(self.fc(feat).view(-1, self.c0, 4, 4))
         n = len(self.ups)
         i = 0
@@ -304,6 +363,28 @@ class Decoder(nn.Module):
             if i < n - 1:
                 x = F.silu(x)
             i += 1
+        return x
+
+    def accum_step(self, feat: torch.Tensor, ctx: list[torch.Tensor], ctx_pm: torch.Tensor,
+                   grid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``compose="accum"``: the next frame (N, 4, S, S) premultiplied and its warp (N, S, S, 2),
+        from the current frame's warp ``grid`` (the identity grid before the first step) and the
+        context's maps ``ctx`` and pixels ``ctx_pm`` (as ``forward``)."""
+        x = self.heads(feat, warp_maps(ctx, grid))
+        gen = torch.sigmoid(x[:, :4])
+        gen = torch.cat([gen[:, :3] * gen[:, 3:4], gen[:, 3:4]], 1)
+        grid = accumulated_warp(grid, torch.tanh(x[:, 5:7]) * self.max_step_flow, self.grid, self.warp_leak)
+        warped = F.grid_sample(ctx_pm, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+        mask = torch.sigmoid(x[:, 4:5])
+        return mask * warped + (1.0 - mask) * gen, grid
+
+    def forward(self, feat: torch.Tensor, ctx: list[torch.Tensor], ctx_pm: torch.Tensor) -> torch.Tensor:
+        """``ctx``: context maps per frame (coarsest first, as :meth:`Encoder.features`), ``ctx_pm``
+        the premultiplied context frame (N, 4, S, S); both ignored without ``skip``. (``"accum"``:
+        one step from the context frame, :meth:`accum_step` from the identity grid.)"""
+        if self.accum:
+            return self.accum_step(feat, ctx, ctx_pm, self.grid.expand(feat.shape[0], -1, -1, -1))[0]
+        x = self.heads(feat, ctx)
         if not self.skip:
             rgba = torch.sigmoid(x)
             return torch.cat([rgba[:, :3] * rgba[:, 3:4], rgba[:, 3:4]], 1)
@@ -400,7 +481,24 @@ class Rssm(nn.Module):
                ctx_pm: torch.Tensor, ctx_pe: torch.Tensor) -> torch.Tensor:
         """Premultiplied RGBA (N, 4, S, S); ``ctx``/``ctx_pm``/``ctx_pe`` of the context frame, one per row."""
         return self.decoder(decoder_features(h, z, pe, ctx_pe, self.cfg.skip, self.cfg.decoder_view,
-                                             self.cfg.view_freqs), ctx, ctx_pm)
+                                             self.cfg.view_freqs, ctx_pe if self.decoder.accum else None),
+                            ctx, ctx_pm)
+
+    def decode_chain(self, h: torch.Tensor, z: torch.Tensor, pe: torch.Tensor, prev_pe: torch.Tensor,
+                     ctx: list[torch.Tensor], ctx_pm: torch.Tensor, ctx_pe: torch.Tensor,
+                     grid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``compose="accum"``: consecutive frames of each row, one step after another. ``h``, ``z``
+        (N, T, .), ``pe`` (N, T, 4F) their views, ``prev_pe`` (N, 4F) the view of the frame before
+        the first, ``grid`` (N, S, S, 2) its warp; context as :meth:`decode`. Returns premultiplied
+        RGBA (N, T, 4, S, S) and the last frame's warp."""
+        out = []
+        for t in range(h.shape[1]):
+            feat = decoder_features(h[:, t], z[:, t], pe[:, t], ctx_pe, True, self.cfg.decoder_view,
+                                    self.cfg.view_freqs, prev_pe)
+            x, grid = self.decoder.accum_step(feat, ctx, ctx_pm, grid)
+            out.append(x)
+            prev_pe = pe[:, t]
+        return torch.stack(out, 1), grid
 
 
 # --------------------------------------------------------------------------- losses
@@ -510,17 +608,36 @@ def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[to
     rep = torch.clamp(torch.stack(kl_rep), min=cfg.free_nats).mean()
     kl = cfg.kl_balance * dyn + (1 - cfg.kl_balance) * rep
     w = motion_weights(x, cfg.motion_weight) if cfg.motion_weight > 0 else None
-    ti = _decoded(T1, cfg.decode_frames + 1, 0, x.device)
-    rec = _rec_loss(decode(torch.stack(hs, 1)[:, ti], torch.stack(zd, 1)[:, ti], ti), x[:, ti].flatten(0, 1),
-                    None if w is None else w[:, ti].flatten(0, 1))
+    accum = model.decoder.accum
+    k = min(max(cfg.open_loop_from, 0), T1 - 2)
+    K = cfg.open_loop_samples                            # best-of-K: K copies of the batch, copy-major
+    if accum:
+        # Frames follow one another (each step's warp builds on the last): the filtering frames
+        # 1..T are decoded in order from the identity warp (frame 0 is the context itself), and
+        # the open loop goes on from the filtering warp of frame k, as its states do.
+        def chain(hh, zz, t0, t1, grid, reps=1):
+            rep = lambda a: a.repeat((reps,) + (1,) * (a.dim() - 1))
+            return model.decode_chain(hh, zz, rep(pe[:, t0:t1]), rep(pe[:, t0 - 1]), [rep(c) for c in ctx0],
+                                      rep(x[:, 0]), rep(pe[:, 0]), grid)
+
+        H, Zd = torch.stack(hs, 1), torch.stack(zd, 1)
+        f1, g_k = x[:, :0], model.decoder.grid.expand(B, -1, -1, -1)
+        if k >= 1:
+            f1, g_k = chain(H[:, 1:k + 1], Zd[:, 1:k + 1], 1, k + 1, g_k)
+        f2, _ = chain(H[:, k + 1:], Zd[:, k + 1:], k + 1, T1, g_k)
+        ti = torch.arange(1, T1, device=x.device)
+        rec = _rec_loss(torch.cat([f1, f2], 1).flatten(0, 1), x[:, 1:].flatten(0, 1),
+                        None if w is None else w[:, 1:].flatten(0, 1))
+    else:
+        ti = _decoded(T1, cfg.decode_frames + 1, 0, x.device)
+        rec = _rec_loss(decode(torch.stack(hs, 1)[:, ti], torch.stack(zd, 1)[:, ti], ti), x[:, ti].flatten(0, 1),
+                        None if w is None else w[:, ti].flatten(0, 1))
     # Open loop, the way it runs: prior samples only, from the filtering state of frame k.
     # k = 0 is the run-time start exactly, but one frame cannot tell which way a swing goes,
     # so a sampled rollout from it is scored against one direction and the error is least for
     # a still, averaged frame: the model learns to stop. From k = 1 the posterior has seen
     # frames 0 and 1 (the direction is in z_1) and the open loop learns sustained motion; the
     # run time samples z_1 from the prior, which the dynamics KL trains to cover those posteriors.
-    k = min(max(cfg.open_loop_from, 0), T1 - 2)
-    K = cfg.open_loop_samples                            # best-of-K: K copies of the batch, copy-major
     ho, zo = hs[k].repeat(K, 1), zs[k].repeat(K, 1)
     ol_h, ol_z, over = [], [], []
     for t in range(k + 1, T1):
@@ -531,7 +648,7 @@ def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[to
         ol_z.append(zo)
         over.append(_kl(post_m[t].detach().repeat(K, 1), post_s[t].detach().repeat(K, 1), pm, ps).mean())
     overshoot = torch.stack(over).mean()
-    oi = _decoded(T1, cfg.decode_frames, k + 1, x.device)
+    oi = torch.arange(k + 1, T1, device=x.device) if accum else _decoded(T1, cfg.decode_frames, k + 1, x.device)
     dh, dz, di = torch.stack(ol_h, 1)[:, oi - k - 1], torch.stack(ol_z, 1)[:, oi - k - 1], oi
     n0 = 0
     if cfg.prior_first and k >= 1:
@@ -540,9 +657,16 @@ def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[to
         h1 = hs[1].repeat(K, 1)
         pm1, ps1 = model.prior_stats(h1)
         z1 = pm1 + ps1 * torch.randn_like(ps1)
-        dh, dz = torch.cat([h1[:, None], dh], 1), torch.cat([z1[:, None], dz], 1)
+        if accum:                                        # from the identity warp, as at run time
+            first, _ = chain(h1[:, None], z1[:, None], 1, 2, model.decoder.grid.expand(K * B, -1, -1, -1), K)
+        else:
+            dh, dz = torch.cat([h1[:, None], dh], 1), torch.cat([z1[:, None], dz], 1)
         di, n0 = torch.cat([di.new_ones(1), di]), 1
-    ol_x = decode(dh, dz, di, K)
+    if accum:
+        ol_x, _ = chain(dh, dz, k + 1, T1, g_k.repeat(K, 1, 1, 1), K)
+        ol_x = (torch.cat([first, ol_x], 1) if n0 else ol_x).flatten(0, 1)
+    else:
+        ol_x = decode(dh, dz, di, K)
     copies = lambda a: a[:, di].flatten(0, 1).repeat(K, 1, 1, 1)
     ol = best_of(_pixel_err(ol_x, copies(x), None if w is None else copies(w)), K, B)
     loss = cfg.rec_scale * rec + cfg.kl_scale * kl + cfg.overshoot_scale * overshoot + cfg.open_loop_scale * ol
@@ -582,10 +706,13 @@ class Stepper(nn.Module):
         self.size = int(model.cfg.size)
         self.skip = bool(model.cfg.skip)
         self.decoder_view = str(model.cfg.decoder_view)
+        self.accum = bool(self.decoder.accum)
         self.temperature = float(temperature)
         self.ctx = []                  # the context frame's encoder maps (skip path), set by start()
         self.ctx_pm = torch.zeros(0)
         self.ctx_pe = torch.zeros(0)
+        self.warp = torch.zeros(0)     # compose "accum": the last frame's warp and view, set by start(), step()
+        self.prev_pe = torch.zeros(0)
         # Radians per degree at octaves 1, 2, 4, ... (view_encoding's frequencies).
         self.register_buffer("octaves", (math.pi / 180.0) * 2.0 ** torch.arange(self.freqs, dtype=torch.float32),
                              persistent=False)
@@ -602,6 +729,8 @@ class Stepper(nn.Module):
             self.ctx = self.encoder.features(pm)
             self.ctx_pm = pm
             self.ctx_pe = self._pe(view)
+            self.prev_pe = self.ctx_pe
+            self.warp = self.decoder.grid.expand(rgba.shape[0], -1, -1, -1).to(rgba.dtype)
         h = torch.zeros(rgba.shape[0], self.deter, dtype=rgba.dtype, device=rgba.device)
         mean, raw = self.post(torch.cat([h, emb, self._pe(view)], -1)).chunk(2, -1)
         std = F.softplus(raw) + self.min_std
@@ -613,8 +742,14 @@ class Stepper(nn.Module):
         mean, raw = self.prior(h).chunk(2, -1)
         std = F.softplus(raw) + self.min_std
         z = mean + self.temperature * std * torch.randn_like(std)
-        feat = decoder_features(h, z, self._pe(view), self.ctx_pe, self.skip, self.decoder_view, self.freqs)
-        pm = self.decoder(feat, self.ctx, self.ctx_pm)
+        pe = self._pe(view)
+        if self.accum:
+            feat = decoder_features(h, z, pe, self.ctx_pe, self.skip, self.decoder_view, self.freqs, self.prev_pe)
+            pm, self.warp = self.decoder.accum_step(feat, self.ctx, self.ctx_pm, self.warp)
+            self.prev_pe = pe
+        else:
+            feat = decoder_features(h, z, pe, self.ctx_pe, self.skip, self.decoder_view, self.freqs)
+            pm = self.decoder(feat, self.ctx, self.ctx_pm)
         return h, z, straight(pm)
 
     def forward(self, h: torch.Tensor, z: torch.Tensor, view: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -496,3 +496,101 @@ def test_selection_holds_out_the_training_tail_and_writes_the_best_model(data, t
     assert ck["step"] == 4 and ck["selection"]["step"] == s["step"]
     chosen = rssm.load_model(out).state_dict()
     assert all(torch.equal(chosen[k], ck["selection"]["state_dict"][k]) for k in chosen)
+
+
+def test_accumulated_warp_moves_parts_far_and_resamples_the_image_once():
+    S = 32
+    base = rssm.identity_grid(1, S)
+    assert torch.allclose(rssm.accumulated_warp(base, torch.zeros(1, 2, S, S), base), base, atol=1e-6)
+    # A bright square moved right by four steps of half a pixel: the composed coordinates
+    # resample the context frame once, 2 px over; four resamplings of the image smear it.
+    img = torch.zeros(1, 4, S, S)
+    img[:, :, 12:18, 8:14] = 1.0
+    half = torch.zeros(1, 2, S, S)
+    half[:, 0] = -0.5 * 2.0 / S                         # backward flow: from half a pixel to the left
+    grid, resampled = base, img
+    for _ in range(4):
+        grid = rssm.accumulated_warp(grid, half, base)
+        resampled = torch.nn.functional.grid_sample(resampled, base + half.permute(0, 2, 3, 1),
+                                                    align_corners=False)
+    once = torch.nn.functional.grid_sample(img, grid, align_corners=False)
+    shifted = torch.roll(img, 2, -1)
+    assert torch.allclose(once, shifted, atol=1e-4)
+    assert (resampled - shifted).abs().max() > 0.2
+    # Far travel: 40 steps of 1 px take the square 40 px from where a single flow could reach.
+    one = torch.zeros(1, 2, 64, 64)
+    one[:, 0] = -2.0 / 64
+    b64, big = rssm.identity_grid(1, 64), torch.zeros(1, 4, 64, 64)
+    big[:, :, 30:34, 2:6] = 1.0
+    g = b64
+    for _ in range(40):
+        g = rssm.accumulated_warp(g, one, b64)
+    out = torch.nn.functional.grid_sample(big, g, align_corners=False)
+    assert torch.allclose(out[:, :, 30:34, 42:46], torch.ones(1, 4, 4, 4), atol=1e-4) and out[..., :40].abs().max() < 1e-4
+    # A leak shrinks the displacement toward the context layout each step; still parts stay put.
+    held = rssm.accumulated_warp(g, torch.zeros(1, 2, 64, 64), b64, leak=0.25)
+    assert torch.allclose(held - b64, 0.75 * (g - b64), atol=1e-5)
+    assert torch.equal(rssm.accumulated_warp(b64, torch.zeros(1, 2, 64, 64), b64, leak=0.25), b64)
+    with pytest.raises(DbbError, match="warp_leak"):
+        replace_cfg(SMALL, compose="accum", warp_leak=1.0).validate()
+
+
+def test_accum_composite_starts_as_the_context_frame_and_steps_from_its_own_warp(tmp_path):
+    torch.manual_seed(6)
+    cfg = replace_cfg(SMALL, compose="accum")
+    m = rssm.Rssm(cfg).eval()
+    first = torch.rand(2, 4, 32, 32)
+    views = torch.rand(2, 8, 3) * 40
+    with torch.no_grad():
+        out = rssm.rollout(rssm.Stepper(m), first, views)
+        ctx_pm = rssm.premultiply(first)
+        # Untrained: zero flow, ~95 % the context frame at every step (not drifting away).
+        for t in range(out.shape[1]):
+            assert rssm.psnr(rssm.premultiply(out[:, t]).numpy(), ctx_pm.numpy()) > 25
+        m.decoder.ups[-1].bias[4] = 100.0                  # warp share 1: the context frame exactly
+        out = rssm.rollout(rssm.Stepper(m), first, views)
+        assert torch.allclose(rssm.premultiply(out), ctx_pm[:, None].expand_as(out), atol=1e-4)
+        # A constant step flow: frame t is the context frame moved t steps (composed, not clamped).
+        m.decoder.ups[-1].bias[5] = 0.5                    # tanh(0.5) * 0.25 half-widths = 1.85 px per step
+        st = rssm.Stepper(m)
+        h, z = st.start(first, views[:, 0])
+        for _ in range(3):
+            h, z, x = st.step(h, z, views[:, 1])
+        shift = 3 * math.tanh(0.5) * 0.25
+        inside = slice(0, 20)                              # columns whose source is still in the frame
+        assert torch.allclose(st.warp[..., inside, 0], rssm.identity_grid(1, 32)[..., inside, 0] + shift, atol=1e-4)
+    # The scripted stepper runs the same chain.
+    torch.manual_seed(8)
+    m = rssm.Rssm(cfg).eval()
+    path = tmp_path / "stepper.ts"
+    rssm.script_stepper(m).save(str(path))
+    torch.manual_seed(7)
+    eager = rssm.rollout(rssm.Stepper(m), first, views)
+    torch.manual_seed(7)
+    assert torch.allclose(eager, rssm.rollout(torch.jit.load(str(path)), first, views), atol=1e-5)
+    with pytest.raises(DbbError, match="skip"):
+        replace_cfg(cfg, skip=False).validate()
+
+
+def test_accum_training_decodes_frames_in_order_and_the_open_loop_from_the_filtering_warp(monkeypatch):
+    torch.manual_seed(9)
+    m = rssm.Rssm(replace_cfg(SMALL, compose="accum", open_loop_samples=2))
+    calls = []
+    real = m.decode_chain
+
+    def spy(h, z, pe, prev_pe, ctx, ctx_pm, ctx_pe, grid):
+        calls.append((h.shape[0], h.shape[1], grid.clone()))
+        return real(h, z, pe, prev_pe, ctx, ctx_pm, ctx_pe, grid)
+
+    monkeypatch.setattr(m, "decode_chain", spy)
+    x, v = torch.rand(3, 11, 4, 32, 32), torch.rand(3, 11, 3) * 40
+    loss, parts = rssm.sequence_loss(m, x, v)
+    # Filtering frame 1, filtering frames 2..10 from its warp, the prior's first step (2 copies)
+    # from the identity, the open loop 2..10 (2 copies) from filtering frame 1's warp.
+    assert [(n, t) for n, t, _ in calls] == [(3, 1), (3, 9), (6, 1), (6, 9)]
+    ident = m.decoder.grid.expand(3, -1, -1, -1)
+    assert torch.equal(calls[0][2], ident) and torch.equal(calls[2][2], ident.repeat(2, 1, 1, 1))
+    assert torch.equal(calls[3][2], calls[1][2].repeat(2, 1, 1, 1))
+    loss.backward()
+    assert math.isfinite(loss.item())
+    assert m.decoder.ups[-1].weight.grad[:, 5:7].abs().sum() > 0       # the step flow learns
