@@ -256,20 +256,10 @@ def subset(dataset: Path, out: Path, seconds: float) -> dict:
 
 def overrides(pairs: list[str]) -> tuple[rssm.RssmConfig, rssm.TrainConfig]:
     """Model and training settings from ``name=value`` pairs (fields of RssmConfig / TrainConfig)."""
-    cfg, tcfg = rssm.RssmConfig(), rssm.TrainConfig()
-    for pair in pairs:
-        name, value = pair.split("=", 1)
-        target = cfg if hasattr(cfg, name) else tcfg
-        if not hasattr(target, name):
-            raise SystemExit(f"--set: no setting {name!r}")
-        cur = getattr(target, name)
-        v = None if value == "none" else (value == "true" if isinstance(cur, bool) else
-                                          type(cur)(value) if cur is not None else int(value))
-        if target is cfg:
-            cfg = replace(cfg, **{name: v})
-        else:
-            tcfg = replace(tcfg, **{name: v})
-    return cfg, tcfg
+    try:
+        return rssm.configs_from_settings(pairs)
+    except rssm.DbbError as e:
+        raise SystemExit(str(e)) from None
 
 
 def quality(dataset: Path, run: Path, capture: Path | None, minutes: float, steps: int | None, batch: int,

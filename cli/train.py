@@ -85,7 +85,10 @@ def plenoctree(dataset, out, minutes, steps, downscale, resume, overwrite, mode,
               help="Run-time sampling temperature of the stochastic state (0: its mean, which shrinks motion).")
 @click.option("--resume", is_flag=True, help="Continue from the run's last checkpoint.")
 @click.option("--overwrite", is_flag=True, help="Replace the run folder if it exists.")
-def rssm(dataset, out, minutes, steps, size, batch, threads, seed, temperature, resume, overwrite) -> None:
+@click.option("--set", "settings", multiple=True, metavar="NAME=VALUE",
+              help="A model or training setting other than its default, e.g. compose=accum (repeatable; "
+                   "docs/commands/rssm.md lists them).")
+def rssm(dataset, out, minutes, steps, size, batch, threads, seed, temperature, resume, overwrite, settings) -> None:
     """Dynamic object: train a viewpoint-conditioned RSSM video predictor on DATASET (crops.json).
 
     Writes the weights, a TorchScript stepper and the evaluation (per-step PSNR/SSIM of 10-step
@@ -94,12 +97,13 @@ def rssm(dataset, out, minutes, steps, size, batch, threads, seed, temperature, 
     """
     import torch
 
-    from dbb_capture.rssm import RssmConfig, TrainConfig, train_run
+    from dbb_capture.rssm import RssmConfig, TrainConfig, configs_from_settings, train_run
 
     if threads:
         torch.set_num_threads(threads)
-    meta = train_run(dataset, out, RssmConfig(size=int(size)), TrainConfig(minutes, steps, batch=batch, seed=seed),
-                     resume=resume, overwrite=overwrite, temperature=temperature)
+    cfg, tcfg = configs_from_settings(list(settings), RssmConfig(size=int(size)),
+                                      TrainConfig(minutes, steps, batch=batch, seed=seed))
+    meta = train_run(dataset, out, cfg, tcfg, resume=resume, overwrite=overwrite, temperature=temperature)
     _print_rssm(out, meta["eval"], f"{meta['training']['steps']} steps in {meta['training']['seconds'] / 60:.1f} min")
 
 

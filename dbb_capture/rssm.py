@@ -94,6 +94,9 @@ class RssmConfig:
     open_loop_from: int = 1        # the training open loop starts from the filtering state of this frame:
                                    # 1 = after the posterior has seen frames 0 and 1 (see sequence_loss)
     motion_weight: float = 10.0    # extra weight of changing pixels in the reconstruction losses
+    motion_weight_of: str = "truth"  # whose change weighs: "truth" (the truth's change from its previous
+                                   # frame) or "both" (also the prediction's change from that frame, so
+                                   # change predicted where none comes weighs as much as change missed)
     decode_frames: int = 10        # frames decoded per window in each branch (a random subset of a
                                    # longer window: the transition runs the whole window, the decoder,
                                    # which costs most, only this many frames)
@@ -119,6 +122,8 @@ class RssmConfig:
             raise DbbError(f"RSSM compose must be copy3, blend or accum, not {self.compose!r}")
         if self.compose == "accum" and not self.skip:
             raise DbbError("RSSM compose accum warps the context frame: it needs skip")
+        if self.motion_weight_of not in ("truth", "both"):
+            raise DbbError(f"RSSM motion_weight_of must be truth or both, not {self.motion_weight_of!r}")
         if not 0.0 <= self.warp_leak < 1.0:
             raise DbbError(f"RSSM warp_leak must be in [0, 1), not {self.warp_leak}")
         if self.filter_decode not in ("posterior", "prior"):
@@ -171,6 +176,36 @@ class TrainConfig:
             raise DbbError(f"val_fraction must be in [0, 0.5), not {self.val_fraction}")
         if self.val_every < 1:
             raise DbbError("val_every must be at least 1")
+
+
+def configs_from_settings(pairs: list[str], cfg: RssmConfig | None = None,
+                          tcfg: TrainConfig | None = None) -> tuple[RssmConfig, TrainConfig]:
+    """Model and training settings from ``NAME=VALUE`` pairs (fields of :class:`RssmConfig` or
+    :class:`TrainConfig`, e.g. ``compose=accum``), over ``cfg`` / ``tcfg`` (default: the defaults);
+    values take the field's type ("none" for None, true/false for flags)."""
+    cfg, tcfg = cfg or RssmConfig(), tcfg or TrainConfig()
+    for pair in pairs:
+        name, eq, value = pair.partition("=")
+        target = cfg if name in {f.name for f in fields(RssmConfig)} else tcfg
+        if not eq or name not in {f.name for f in fields(target)} or name in ("minutes", "steps"):
+            raise DbbError(f"--set {pair}: expected NAME=VALUE with NAME a model or training setting "
+                           f"({', '.join(f.name for f in fields(RssmConfig))}; "
+                           f"{', '.join(f.name for f in fields(TrainConfig) if f.name not in ('minutes', 'steps'))})")
+        cur = getattr(target, name)
+        try:
+            if value == "none" and not isinstance(cur, str):
+                v = None
+            elif isinstance(cur, bool):
+                v = value.lower() == "true"
+            else:
+                v = type(cur)(value) if cur is not None else int(value)
+        except ValueError:
+            raise DbbError(f"--set {pair}: {value!r} is not a {type(cur).__name__}") from None
+        if target is cfg:
+            cfg = replace(cfg, **{name: v})
+        else:
+            tcfg = replace(tcfg, **{name: v})
+    return cfg, tcfg
 
 
 # --------------------------------------------------------------------------- viewpoint encoding
@@ -534,6 +569,21 @@ def motion_weights(x: torch.Tensor, scale: float) -> torch.Tensor:
     return 1.0 + scale * torch.cat([d[:, :1], d], 1)
 
 
+def with_predicted_change(w: torch.Tensor | None, pred: torch.Tensor, prev: torch.Tensor, scale: float,
+                          how: str) -> torch.Tensor | None:
+    """The loss weights ``w`` (N, 1, S, S) of predicted frames ``pred`` (N, 4, S, S), raised with
+    ``how="both"`` to 1 + ``scale`` * the prediction's largest channel change from the true previous
+    frame ``prev`` (N, 4, S, S) where that is more (no gradient through the weight).
+
+    Weights from the truth's change alone pull a prediction toward change: a part drawn moving
+    where the truth stays costs no more than elsewhere, one left still where the truth moves
+    costs up to 1 + scale times as much (``RssmConfig.motion_weight_of``).
+    """
+    if w is None or how == "truth":
+        return w
+    return torch.maximum(w, 1.0 + scale * (pred.detach() - prev).abs().amax(1, keepdim=True))
+
+
 def energy_match(pred: torch.Tensor, truth: torch.Tensor, eps: float = 1e-3) -> torch.Tensor:
     """Squared log ratio of motion energies (mean |frame change|) of each sequence, mean over the batch.
 
@@ -626,12 +676,16 @@ def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[to
             f1, g_k = chain(H[:, 1:k + 1], Zd[:, 1:k + 1], 1, k + 1, g_k)
         f2, _ = chain(H[:, k + 1:], Zd[:, k + 1:], k + 1, T1, g_k)
         ti = torch.arange(1, T1, device=x.device)
-        rec = _rec_loss(torch.cat([f1, f2], 1).flatten(0, 1), x[:, 1:].flatten(0, 1),
-                        None if w is None else w[:, 1:].flatten(0, 1))
+        fr = torch.cat([f1, f2], 1).flatten(0, 1)
+        rec = _rec_loss(fr, x[:, 1:].flatten(0, 1), with_predicted_change(
+            None if w is None else w[:, 1:].flatten(0, 1), fr, x[:, :-1].flatten(0, 1), cfg.motion_weight,
+            cfg.motion_weight_of))
     else:
         ti = _decoded(T1, cfg.decode_frames + 1, 0, x.device)
-        rec = _rec_loss(decode(torch.stack(hs, 1)[:, ti], torch.stack(zd, 1)[:, ti], ti), x[:, ti].flatten(0, 1),
-                        None if w is None else w[:, ti].flatten(0, 1))
+        fr = decode(torch.stack(hs, 1)[:, ti], torch.stack(zd, 1)[:, ti], ti)
+        rec = _rec_loss(fr, x[:, ti].flatten(0, 1), with_predicted_change(
+            None if w is None else w[:, ti].flatten(0, 1), fr, x[:, (ti - 1).clamp(min=0)].flatten(0, 1),
+            cfg.motion_weight, cfg.motion_weight_of))
     # Open loop, the way it runs: prior samples only, from the filtering state of frame k.
     # k = 0 is the run-time start exactly, but one frame cannot tell which way a swing goes,
     # so a sampled rollout from it is scored against one direction and the error is least for
@@ -667,8 +721,10 @@ def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[to
         ol_x = (torch.cat([first, ol_x], 1) if n0 else ol_x).flatten(0, 1)
     else:
         ol_x = decode(dh, dz, di, K)
-    copies = lambda a: a[:, di].flatten(0, 1).repeat(K, 1, 1, 1)
-    ol = best_of(_pixel_err(ol_x, copies(x), None if w is None else copies(w)), K, B)
+    copies = lambda a, i=di: a[:, i].flatten(0, 1).repeat(K, 1, 1, 1)
+    w_ol = with_predicted_change(None if w is None else copies(w), ol_x, copies(x, di - 1), cfg.motion_weight,
+                                 cfg.motion_weight_of)
+    ol = best_of(_pixel_err(ol_x, copies(x), w_ol), K, B)
     loss = cfg.rec_scale * rec + cfg.kl_scale * kl + cfg.overshoot_scale * overshoot + cfg.open_loop_scale * ol
     parts = {"loss": loss.item(), "rec": rec.item(), "open_loop": ol.item(), "kl_dyn": dyn.item(),
              "kl_rep": torch.stack(kl_rep).mean().item(), "overshoot": overshoot.item()}

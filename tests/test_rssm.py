@@ -155,6 +155,18 @@ def test_run_folder_cli_resume_and_eval(crops, tmp_path):
     assert json.loads((out / "run.json").read_text())["stepper"]["temperature"] == 0.5
     assert torch.jit.load(str(out / "stepper.ts")).temperature == 0.5
     assert not (out / ".report.partial").exists() and (out / "report" / "eval.json").is_file()
+    # Settings other than the defaults, by name; a wrong one is one clear line.
+    r = CliRunner().invoke(cli.main, ["rssm", str(crops.root), "-o", str(tmp_path / "acc"), "--size", "32",
+                                      "--steps", "2", "--batch", "2", "--threads", "1", "--set", "compose=accum",
+                                      "--set", "warp_leak=0.1", "--set", "augment=none"])
+    assert r.exit_code == 0, r.output
+    cfg = json.loads((tmp_path / "acc" / "run.json").read_text())["model"]["config"]
+    assert cfg["compose"] == "accum" and cfg["warp_leak"] == 0.1 and cfg["size"] == 32
+    for bad in ("warp_leek=0.1", "warp_leak=lots", "compose"):
+        r = CliRunner().invoke(cli.main, ["rssm", str(crops.root), "-o", str(tmp_path / "y"), "--set", bad])
+        lines = [ln for ln in r.output.splitlines() if ln.strip()]
+        assert r.exit_code == 2 and len(lines) == 1 and "--set" in lines[0], r.output
+    assert not (tmp_path / "y").exists()
     r = CliRunner().invoke(cli.main, ["rssm", str(tmp_path / "missing"), "-o", str(tmp_path / "x")])
     lines = [ln for ln in r.output.splitlines() if ln.strip()]
     assert r.exit_code == 2 and len(lines) == 1 and lines[0].startswith("error:"), r.output
@@ -594,3 +606,24 @@ def test_accum_training_decodes_frames_in_order_and_the_open_loop_from_the_filte
     loss.backward()
     assert math.isfinite(loss.item())
     assert m.decoder.ups[-1].weight.grad[:, 5:7].abs().sum() > 0       # the step flow learns
+
+
+def test_motion_weights_of_both_weigh_change_predicted_where_none_comes():
+    x = torch.zeros(1, 3, 4, 8, 8)
+    x[:, 2, :, 2:4, 2:4] = 1.0                               # the truth changes in one corner at frame 2
+    w = rssm.motion_weights(x, 10.0)[:, 1:].flatten(0, 1)    # weights of frames 1 and 2
+    pred = torch.zeros(2, 4, 8, 8)
+    pred[:, :, 5:7, 5:7] = 1.0                               # the prediction changes elsewhere
+    prev = x[:, :2].flatten(0, 1)
+    assert torch.equal(rssm.with_predicted_change(w, pred, prev, 10.0, "truth"), w)
+    both = rssm.with_predicted_change(w, pred, prev, 10.0, "both")
+    assert torch.all(both[:, :, 5:7, 5:7] == 11.0) and torch.all(both[1, :, 2:4, 2:4] == 11.0)
+    assert both[:, :, 0, 0].eq(1.0).all() and torch.all(both >= w)
+    # The loss runs with it in both composites, and the weight carries no gradient.
+    for compose in ("blend", "accum"):
+        m = rssm.Rssm(replace_cfg(SMALL, compose=compose, motion_weight_of="both"))
+        loss, _ = rssm.sequence_loss(m, torch.rand(2, 11, 4, 32, 32), torch.rand(2, 11, 3) * 30)
+        loss.backward()
+        assert math.isfinite(loss.item())
+    with pytest.raises(DbbError, match="motion_weight_of"):
+        replace_cfg(SMALL, motion_weight_of="pred").validate()
