@@ -10,6 +10,9 @@ Each part evaluates a run folder written by ``dbb-train plenoctree`` (train it f
     python bench/bench_plenoctree.py capture DATASET --capture CAPTURE --run RUN --minutes 10
         # a synthetic capture through preprocess: held-out crops scored against the truth
         # (--steps N: fixed steps; --truth DIR: train on crops re-made from the ground truth)
+    python bench/bench_plenoctree.py ceiling CAPTURE     # crops of the footage with the true coverage,
+        # through the true cameras, against the truth: what the footage allows any matte
+    python bench/bench_plenoctree.py carve DATASET --capture CAPTURE   # what carving removes, against the truth
     python bench/bench_plenoctree.py speed RUN           # render speed and size of the tree only
 """
 
@@ -163,6 +166,95 @@ def truth_crops(dataset: Path, capture: Path, out: Path) -> Path:
     return out
 
 
+def footage_ceiling(capture: Path, size: int = 128, fill: float = 0.9, test_fraction: float = 0.2,
+                    every: int = 8) -> dict:
+    """The footage's own ceiling, through the capture's *true* cameras (no pose error): every
+    frame's crop camera (:func:`~dbb_capture.crops.crop_camera`, as preprocess makes it) cut
+    from the video (:func:`~dbb_capture.crops.cut_crop`, the same warp), alpha = the true
+    full-frame coverage (ground-truth masks) through the same warp, the colour as observed or
+    taken out of the true room (the scene rendered without the object through the crop camera,
+    as a perfect matte would); scored against the object alone rendered through the crop camera,
+    on black and white, for the crops of the time split's test part, the every-n-th crops and all."""
+    import cv2
+
+    from dbb_capture.cameras import opencv_from_opengl
+    from dbb_capture.crops import crop_camera, cut_crop, split_by_time
+    from dbb_capture.io import capture_footage
+    from dbb_capture.matte import straight_rgba
+    from dbb_capture.synth import Renderer, load_ground_truth, render_object_rgba
+
+    from bench_preprocess import synth_scene   # bench/ is the script folder: on sys.path
+
+    intr, cams, model = load_ground_truth(capture)
+    room_scene = synth_scene(capture).without_object()
+    obj = json.loads((capture / "object.json").read_text())
+    centre, radius, up = np.array(obj["center"]), float(obj["radius"]), np.array([0.0, 0.0, -1.0])
+    video = cams["video"]
+    times = np.array([fr["time"] for fr in video])
+    test_time = split_by_time(times, test_fraction) == "test"
+    rows = []
+    for img in capture_footage(capture).read(range(len(video))):
+        fr = video[img.index]
+        c2w = opencv_from_opengl(np.array(fr["transform_matrix"]))
+        cam = crop_camera(c2w, intr, centre, radius, up, size, fill)
+        observed, _ = cut_crop(img.image, cam, intr, c2w)
+        mask = cv2.imread(str(capture / "ground_truth" / "masks" / f"{img.index:05d}.png"), cv2.IMREAD_GRAYSCALE)
+        alpha = cut_crop(mask[..., None], cam, intr, c2w)[0].reshape(size, size)
+        room = Renderer(cam.intr, 2).render(room_scene, cam.c2w, fr["time"])[0]
+        room = np.clip(np.round(room * 255), 0, 255).astype(np.uint8)
+        gt = render_object_rgba(model, cam.intr, cam.c2w, fr["time"]).astype(np.float32) / 255
+        row = {"index": img.index}
+        for tag, rgba in (("raw", np.concatenate([observed, alpha[..., None]], -1)),
+                          ("unmixed", straight_rgba(observed, room, alpha.astype(np.float32) / 255))):
+            c = rgba.astype(np.float32) / 255
+            for key, bg in (("black", 0.0), ("white", 1.0)):
+                t = gt[..., :3] * gt[..., 3:] + (1 - gt[..., 3:]) * bg
+                m = c[..., :3] * c[..., 3:] + (1 - c[..., 3:]) * bg
+                row[f"{tag}_{key}"] = psnr(float(((m - t) ** 2).mean()))
+            row[f"{tag}_parts"] = error_parts(c, gt)
+        rows.append(row)
+    out = {"capture": str(capture), "size": size, "crops": len(rows)}
+    for name, sel in (("all", np.ones(len(rows), bool)), ("test_time", test_time),
+                      (f"every_{every}", np.arange(len(rows)) % every == 0)):
+        picked = [r for r, s in zip(rows, sel) if s]
+        out[name] = {"views": len(picked)}
+        for tag in ("raw", "unmixed"):
+            out[name][tag] = {"psnr_black": mean_of(picked, f"{tag}_black"),
+                              "psnr_white": mean_of(picked, f"{tag}_white"),
+                              "error": summarize_parts([r[f"{tag}_parts"] for r in picked])}
+    return out
+
+
+def carve_check(dataset: Path, capture: Path, res: int = 128, shares: tuple[float, ...] = (0.1, 0.2, 0.3),
+                min_views: int = 3) -> list[dict]:
+    """What carving (:func:`~dbb_capture.fields.carve_mask`) does on a synthetic capture's
+    dataset, from the mattes of its training crops: the share of the object sphere's lattice
+    points (``res`` per axis) carved, the points inside the true object carved (ought to be
+    none), and the share of the points further than 1.5 cells from the object that stay."""
+    from dbb_capture.fields import build_ray_bank, carve_mask
+    from dbb_capture.synth import load_ground_truth
+
+    ds = load_dataset(dataset)
+    vol = ds.volume
+    bank = build_ray_bank(ds.split("train"), 1, vol)
+    _, _, model = load_ground_truth(capture)
+    ax = (np.arange(res) + 0.5) / res * 2 - 1
+    x = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    pts = x[(x ** 2).sum(-1) <= 1] * vol.radius + np.asarray(vol.center)
+    cell = 2 * vol.radius / res
+    inside, near = np.zeros(len(pts), bool), np.zeros(len(pts), bool)
+    for c, rot, e in model.posed(0.0):
+        inside |= np.linalg.norm((pts - c) @ rot / np.asarray(e.radii), axis=1) <= 1
+        near |= np.linalg.norm((pts - c) @ rot / (np.asarray(e.radii) + 1.5 * cell), axis=1) <= 1
+    rows = []
+    for share in shares:
+        cut = carve_mask(bank.views, pts, cell, share, min_views)
+        rows.append({"share": share, "min_views": min_views, "carved": float(cut.mean()),
+                     "object_points": int(inside.sum()), "object_points_carved": int(cut[inside].sum()),
+                     "outside_kept": float((~cut[~near]).mean())})
+    return rows
+
+
 def resplit_crops(dataset: Path, out: Path, every: int) -> Path:
     """A copy of the dataset's ``crops.json`` in ``out`` (image paths made absolute) where every
     ``every``-th crop (0, every, ...) is held out instead of the last 20% of the capture's time:
@@ -272,12 +364,13 @@ def bench_capture(dataset: Path, capture: Path, run_dir: Path, minutes: float | 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("part", choices=["lego", "fox", "synth", "speed", "capture"])
-    ap.add_argument("path", type=Path, help="run folder (lego, fox), output folder (synth) or dataset (capture)")
+    ap.add_argument("part", choices=["lego", "fox", "synth", "speed", "capture", "ceiling", "carve"])
+    ap.add_argument("path", type=Path,
+                    help="run folder (lego, fox), output folder (synth), dataset (capture, carve) or capture (ceiling)")
     ap.add_argument("--minutes", type=float, default=None, help="training budget (default 10 without --steps)")
-    ap.add_argument("--capture", type=Path, help="capture: the synthetic capture (its ground_truth/)")
+    ap.add_argument("--capture", type=Path, help="capture, carve: the synthetic capture (its ground_truth/)")
     ap.add_argument("--run", type=Path, help="capture: run folder to write (or read with --no-train)")
-    ap.add_argument("--res-max", type=int, default=128, help="capture: finest lattice")
+    ap.add_argument("--res-max", type=int, default=128, help="capture: finest lattice; carve: the lattice")
     ap.add_argument("--no-train", action="store_true", help="capture: score an existing run")
     ap.add_argument("--steps", type=int, default=None,
                     help="capture: train this many steps (alone unless --minutes is given too)")
@@ -289,6 +382,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="capture: train on the crops re-made from the ground truth, written to this folder")
     ap.add_argument("--field", type=json.loads, default=None,
                     help='capture: FieldConfig settings to change, JSON, e.g. \'{"beta_alpha": 1e-3}\'')
+    ap.add_argument("--crop-size", type=int, default=128, help="ceiling: crop side in pixels")
     ap.add_argument("--repeats", type=int, default=8)
     ap.add_argument("--json", type=Path, default=None, help="also write the figures here")
     a = ap.parse_args(argv)
@@ -303,6 +397,12 @@ def main(argv: list[str] | None = None) -> int:
             ap.error("capture needs --capture and --run")
         res = bench_capture(a.path, a.capture, a.run, a.minutes,
                             a.res_max, not a.no_train, a.field, a.steps, a.truth, a.holdout_every, a.prune_weight)
+    elif a.part == "ceiling":
+        res = footage_ceiling(a.path, a.crop_size)
+    elif a.part == "carve":
+        if a.capture is None:
+            ap.error("carve needs --capture")
+        res = carve_check(a.path, a.capture, a.res_max)
     else:
         res = bench_synth(a.path, a.minutes or 10.0)
     return emit(res, a.json)

@@ -39,10 +39,17 @@ def main() -> None:
               help="Without a split in the dataset, every n-th frame is held out for the report (0: none).")
 @click.option("--holdout", "holdout_names", default="", help="Comma-separated frame names (file stems) to hold out.")
 @click.option("--batch-rays", type=int, default=4096, show_default=True)
+@click.option("--robust-from", type=click.FloatRange(0, 1), default=1.0, show_default=True,
+              help="From this fraction of the budget, rays whose error stays large lose weight (Cauchy IRLS), "
+                   "so the views outvote a matte's errors (1: off; 0.5 for preprocess crops).")
+@click.option("--carve", "carve_share", type=click.FloatRange(0, 1), default=0.0, show_default=True,
+              help="Leave out space that at least this share of the views that see it see as clearly empty "
+                   "(0: off; 0.2 for preprocess crops).")
 @click.option("--threads", type=click.IntRange(1, 256), default=None,
               help="CPU threads (default: torch's choice; on a machine shared with other jobs 1 is faster).")
 def plenoctree(dataset, out, minutes, steps, downscale, resume, overwrite, mode, sh_degree, res_max,
-               max_points, depth, prune_weight, holdout_every, holdout_names, batch_rays, threads) -> None:
+               max_points, depth, prune_weight, holdout_every, holdout_names, batch_rays, robust_from, carve_share,
+               threads) -> None:
     """Static object: train a voxel radiance field on DATASET and bake it into a PlenOctree.
 
     DATASET is a preprocess output (crops.json) or a nerfstudio / instant-ngp / Blender
@@ -59,7 +66,7 @@ def plenoctree(dataset, out, minutes, steps, downscale, resume, overwrite, mode,
     names = tuple(n.strip() for n in holdout_names.split(",") if n.strip())
     cfg = RunConfig(minutes, steps, downscale, mode, holdout_every, names, depth, prune_weight)
     fcfg = FieldConfig(sh_degree=sh_degree, res_max=res_max, max_points=max_points, batch_rays=batch_rays,
-                       res_start=min(32, res_max))
+                       res_start=min(32, res_max), robust_from=robust_from, carve_share=carve_share)
     run = train_run(dataset, out, cfg, fcfg, resume=resume, overwrite=overwrite)
     m = run.meta
     mp = m["metrics"].get("mean_psnr_tree_white")

@@ -111,6 +111,24 @@ class FieldConfig:
     # room per ray, colour and alpha trade off (a * c + (1 - a) * B fits many pairs), which left
     # the object see-through from new angles. Above 1: never.
     matte_opaque: float = 0.99
+    # Robust training (iteratively reweighted least squares, as RobustNeRF / NeRF-W let views
+    # outvote their outliers): from this fraction of the budget on, each ray's squared error is
+    # weighted by ``1 / (1 + e / robust_scale^2)``, ``e`` the running mean of that ray's own
+    # error (premultiplied colour and alpha against its target, independent of the random
+    # background) over its earlier visits. A matte's false object or hole that other views
+    # contradict keeps a large error and loses its say; what the views agree on fits and keeps
+    # weight 1. ``robust_scale`` is in colour units (0..1). 1: off (plain L2).
+    robust_from: float = 1.0
+    robust_scale: float = 0.1
+    # Carving (space carving / a visual hull with a tolerance): at every lattice stage, points
+    # that at least this share of the training views that see them (and at least
+    # ``carve_min_views``) see as clearly empty (alpha under ``carve_alpha`` within a pixel and
+    # the point's footprint of it) are left out of the field. A matte's false object that other
+    # views see through cannot be learned as geometry; a hole that few views share is kept.
+    # 0: off. Needs the views' alpha (object mode); datasets without alpha are not carved.
+    carve_share: float = 0.0
+    carve_min_views: int = 3
+    carve_alpha: float = 0.1
     seed: int = 0
 
     @property
@@ -356,6 +374,18 @@ class VoxelField:
                           self.density.data[rows], self.sh.data[rows], self.nearest)
 
     @torch.no_grad()
+    def carved(self, views: "Silhouettes", share: float, min_views: int = 3, empty_alpha: float = 0.1) -> "VoxelField":
+        """The field without the active points the views carve away (:func:`carve_mask`)."""
+        pts = (self.lattice_points(self.active).cpu().numpy().astype(np.float64) * self.radius
+               + np.asarray(self.volume.center, np.float64))
+        keep = torch.from_numpy(~carve_mask(views, pts, self.cell * self.radius, share, min_views, empty_alpha))
+        keep = keep.to(self.device)
+        if bool(keep.all()):
+            return self
+        return VoxelField(self.cfg, self.volume, self.res, self.device, self.active[keep],
+                          self.density.data[:-1][keep], self.sh.data[:-1][keep], self.nearest)
+
+    @torch.no_grad()
     def upsampled(self, res: int) -> "VoxelField":
         """The same field on a finer lattice (``res`` points per axis), active near active points."""
         occ = torch.zeros(self.res ** 3, device=self.device)
@@ -539,17 +569,83 @@ def opacity_prior(alpha: torch.Tensor) -> torch.Tensor:
 @dataclass
 class RayBank:
     """Every training pixel as a ray: origins, unit directions (N, 3) world; straight RGBA (N, 4);
-    for preprocess crops also the observed RGB and the predicted room's RGB (N, 3), else None."""
+    for preprocess crops also the observed RGB and the predicted room's RGB (N, 3), else None;
+    for robust training each ray's running squared error (N,) (NaN until first rendered)."""
 
     origins: torch.Tensor
     dirs: torch.Tensor
     rgba: torch.Tensor
     observed: torch.Tensor | None = None
     room: torch.Tensor | None = None
+    error: torch.Tensor | None = None
+    views: "Silhouettes | None" = None
 
     @property
     def n(self) -> int:
         return int(self.origins.shape[0])
+
+    def record_errors(self, pick: torch.Tensor, rgb: torch.Tensor, alpha: torch.Tensor, bg: torch.Tensor,
+                      keep: float = 0.5) -> None:
+        """Fold the rays ``pick`` (B,) as just rendered into their running error (:attr:`error`):
+        ``rgb`` (B, 3) composited over ``bg`` (B, 3), ``alpha`` (B,). The error is the squared
+        premultiplied-colour difference (summed over RGB) plus the squared alpha difference to
+        the ray's straight RGBA target, so the random background does not enter it; it replaces
+        ``1 - keep`` of the previous value."""
+        if self.error is None:
+            self.error = torch.full((self.n,), float("nan"))
+        t = self.rgba[pick]
+        pm = rgb - (1 - alpha[:, None]) * bg
+        e = ((pm - t[:, :3] * t[:, 3:]) ** 2).sum(-1) + (alpha - t[:, 3]) ** 2
+        old = self.error[pick]
+        self.error[pick] = torch.where(old.isnan(), e, keep * old + (1 - keep) * e)
+
+
+@dataclass
+class Silhouettes:
+    """The training views' alpha (each (h, w) uint8, 255 = opaque) and cameras (OpenCV c2w (4, 4),
+    intrinsics at the alpha's size): what :func:`carve_mask` asks which points the views see empty."""
+
+    alphas: list[np.ndarray]
+    cameras: list[tuple[np.ndarray, "Intrinsics"]]
+
+
+def carve_mask(views: Silhouettes, points: np.ndarray, cell: float, share: float, min_views: int = 3,
+               empty_alpha: float = 0.1) -> np.ndarray:
+    """Which world points (M, 3) the views carve away: (M,) bool, True where at least ``share``
+    of the views that see the point (it projects inside the image, in front of the camera), and
+    at least ``min_views`` of them, find alpha below ``empty_alpha`` everywhere within one pixel
+    plus half the point's footprint (a cube of side ``cell`` world units) of where it projects.
+    So a point is only carved where views clearly see through it: pose and resampling errors of
+    a pixel, and holes that fewer views than ``share`` have, keep it."""
+    import cv2
+
+    from .cameras import invert_rigid, project_points
+
+    seen = np.zeros(len(points), np.int32)
+    empty = np.zeros(len(points), np.int32)
+    for a, (c2w, intr) in zip(views.alphas, views.cameras):
+        w2c = invert_rigid(c2w)
+        z = points @ w2c[:3, :3].T[:, 2] + w2c[2, 3]
+        front = z > 1e-6
+        if not front.any():
+            continue
+        # Dilate by the footprint of a cell at the view's median depth (plus one pixel).
+        r = 1 + int(math.ceil(0.5 * cell * 0.5 * (intr.fx + intr.fy) / float(np.median(z[front]))))
+        wide = cv2.dilate(a, np.ones((2 * r + 1, 2 * r + 1), np.uint8))
+        uv = project_points(points[front], c2w, intr)
+        iu, iv = np.round(uv[:, 0]).astype(np.int64), np.round(uv[:, 1]).astype(np.int64)
+        inside = (iu >= 0) & (iu < a.shape[1]) & (iv >= 0) & (iv < a.shape[0])
+        idx = np.nonzero(front)[0][inside]
+        seen[idx] += 1
+        empty[idx] += wide[iv[inside], iu[inside]] < 255 * empty_alpha
+    return (empty >= min_views) & (empty >= share * seen)
+
+
+def robust_weights(error: torch.Tensor, scale: float) -> torch.Tensor:
+    """IRLS weights (B,) of the Cauchy loss for rays with running squared errors ``error`` (B,):
+    ``1 / (1 + error / scale^2)``; rays not yet rendered (NaN) weigh 1."""
+    w = 1.0 / (1.0 + error / (scale * scale))
+    return torch.where(error.isnan(), torch.ones_like(w), w)
 
 
 def frame_tensors(frame: Frame, downscale: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -562,15 +658,17 @@ def frame_tensors(frame: Frame, downscale: float) -> tuple[np.ndarray, np.ndarra
 def build_ray_bank(frames: list[Frame], downscale: float, volume: ObjectVolume | None = None,
                    mode: str = "object", observed: bool = True) -> RayBank:
     """All pixels of ``frames``; in object mode, rays that miss the object sphere are dropped
-    (they only ever see the background, which the random-background loss already covers).
-    With ``observed``, frames that name their observed crop and predicted room (preprocess
-    crops) add them to the bank (:attr:`FieldConfig.observed_loss` uses them)."""
+    (they only ever see the background, which the random-background loss already covers), and
+    the views' alpha is kept for carving (:attr:`RayBank.views`). With ``observed``, frames that
+    name their observed crop and predicted room (preprocess crops) add them to the bank
+    (:attr:`FieldConfig.observed_loss` uses them)."""
     # Frames without them (a crop past the frame's border) get NaN rows: the matte alone.
     has_room = [f.observed_path is not None and f.background_path is not None for f in frames]
     with_room = observed and mode == "object" and any(has_room)
-    os_, ds, cs, seen, rooms = [], [], [], [], []
+    os_, ds, cs, seen, rooms, alphas = [], [], [], [], [], []
     for f, known in zip(frames, has_room):
         o, d, c = frame_tensors(f, downscale)
+        alphas.append(np.round(c[..., 3] * 255).astype(np.uint8))
         o, d, c = o.reshape(-1, 3), d.reshape(-1, 3), c.reshape(-1, 4)
         hit = np.ones(len(o), bool)
         if mode == "object" and volume is not None:
@@ -589,7 +687,10 @@ def build_ray_bank(frames: list[Frame], downscale: float, volume: ObjectVolume |
     def cat(xs: list[np.ndarray]) -> torch.Tensor | None:
         return torch.from_numpy(np.concatenate(xs)) if xs else None
 
-    return RayBank(cat(os_), cat(ds), cat(cs), cat(seen), cat(rooms))
+    views = None
+    if mode == "object":
+        views = Silhouettes(alphas, [(f.c2w, scaled_intrinsics(f.intr, downscale)) for f in frames])
+    return RayBank(cat(os_), cat(ds), cat(cs), cat(seen), cat(rooms), views=views)
 
 
 def ray_targets(rgba: torch.Tensor, bg: torch.Tensor, observed: torch.Tensor | None, room: torch.Tensor | None,
@@ -693,8 +794,10 @@ def tv_loss(field: VoxelField, n: int, gen: torch.Generator | None = None) -> tu
 
 
 def _cpu_rays(field: VoxelField, origins: torch.Tensor, dirs: torch.Tensor, bg: torch.Tensor,
-              target: torch.Tensor | None, jitter: torch.Tensor, beta: float = 0.0) -> np.ndarray:
-    """Run the numba kernel (:mod:`.fields_cpu`) on world rays (B, 3); (B, 5) RGB, alpha, sq. error."""
+              target: torch.Tensor | None, jitter: torch.Tensor, beta: float = 0.0,
+              ray_w: torch.Tensor | None = None) -> np.ndarray:
+    """Run the numba kernel (:mod:`.fields_cpu`) on world rays (B, 3); (B, 5) RGB, alpha, sq. error.
+    ``ray_w`` (B,): each ray's weight in the gradient (None: 1)."""
     from .fields_cpu import render_rays_cpu     # numba; imported late (it imports this module)
 
     if not field.cpu_kernel:
@@ -703,8 +806,9 @@ def _cpu_rays(field: VoxelField, origins: torch.Tensor, dirs: torch.Tensor, bg: 
     B = o.shape[0]
     out = np.zeros((B, 5), np.float32)
     tgt = target if target is not None else bg
+    w = np.ones(B, np.float32) if ray_w is None else ray_w.float().contiguous().numpy()
     render_rays_cpu(o, dirs.float().contiguous().numpy(), jitter.float().contiguous().numpy(),
-                    bg.float().contiguous().numpy(), tgt.float().contiguous().numpy(),
+                    bg.float().contiguous().numpy(), tgt.float().contiguous().numpy(), w,
                     field.index.numpy(), field.occupancy().numpy(), field.res,
                     field.density.data.numpy()[:, 0], field.sh.data.numpy(), field.density.grad.numpy()[:, 0],
                     field.sh.grad.numpy(), field.density.touched.numpy(), field.sh.touched.numpy(),
@@ -714,14 +818,16 @@ def _cpu_rays(field: VoxelField, origins: torch.Tensor, dirs: torch.Tensor, bg: 
 
 
 def cpu_photometric_step(field: VoxelField, origins: torch.Tensor, dirs: torch.Tensor, bg: torch.Tensor,
-                         target: torch.Tensor, jitter: torch.Tensor, beta: float = 0.0) -> torch.Tensor:
+                         target: torch.Tensor, jitter: torch.Tensor, beta: float = 0.0,
+                         ray_w: torch.Tensor | None = None) -> tuple[torch.Tensor, np.ndarray]:
     """The photometric loss of :func:`render_rays` + MSE, on CPU without autograd: renders the
     rays (B, 3) world origins / unit directions over ``bg`` (B, 3), compares with ``target``
-    (B, 3) and adds the gradient of the mean squared error, plus ``beta`` times
-    :func:`opacity_prior`, into the field's gradient buffers (as ``backward`` would).
-    ``jitter`` (B,) in [0, 1) offsets the samples. Returns the MSE (0-d)."""
-    out = _cpu_rays(field, origins, dirs, bg, target, jitter, beta)
-    return torch.tensor(float(out[:, 4].sum()) / (3 * out.shape[0]))
+    (B, 3) and adds the gradient of the mean squared error (each ray's term weighted by
+    ``ray_w`` (B,) when given), plus ``beta`` times :func:`opacity_prior`, into the field's
+    gradient buffers (as ``backward`` would). ``jitter`` (B,) in [0, 1) offsets the samples.
+    Returns the unweighted MSE (0-d) and the rays as rendered (B, 4): RGB over ``bg``, alpha."""
+    out = _cpu_rays(field, origins, dirs, bg, target, jitter, beta, ray_w)
+    return torch.tensor(float(out[:, 4].sum()) / (3 * out.shape[0])), out[:, :4]
 
 
 def cpu_tv_step(field: VoxelField, n: int, gen: torch.Generator) -> tuple[float, float]:
@@ -767,6 +873,13 @@ def train(state: TrainState, bank: RayBank, budget: Budget,
     t_start = time.perf_counter() - state.seconds
     last_ckpt = time.perf_counter()
     ema = None
+    robust = cfg.robust_from < 1.0
+
+    def carve(f: VoxelField) -> VoxelField:
+        if cfg.carve_share <= 0 or bank.views is None or cfg.mode != "object":
+            return f
+        return f.carved(bank.views, cfg.carve_share, cfg.carve_min_views, cfg.carve_alpha)
+
     while True:
         seconds = time.perf_counter() - t_start
         frac = budget.fraction(state.step, seconds)
@@ -778,8 +891,10 @@ def train(state: TrainState, bank: RayBank, budget: Budget,
             nxt = ress[state.stage + 1]
             if f.n_active * (nxt / f.res) ** 3 <= cfg.max_points:
                 f = f.upsampled(nxt)
-            state.field = f
+            state.field = carve(f)
             state.stage += 1
+        elif state.step == 0:
+            state.field = carve(state.field)
         fld = state.field
         if state.stage == len(bounds) and frac >= cfg.nearest_from:
             fld.nearest = True
@@ -799,19 +914,29 @@ def train(state: TrainState, bank: RayBank, budget: Budget,
         bg = torch.rand(pick.numel(), 3, generator=gen).to(dev)   # runs may round the batch down
         seen, room = (None, None) if bank.observed is None else (bank.observed[pick].to(dev), bank.room[pick].to(dev))
         bg, target = ray_targets(c, bg, seen, room, cfg, gen)
+        ray_w = None
+        if robust and frac >= cfg.robust_from and bank.error is not None:
+            ray_w = robust_weights(bank.error[pick], cfg.robust_scale).to(dev)
         if fast:
             # Closed-form forward and backward in numba: gradients land in the tables' buffers.
-            mse = cpu_photometric_step(fld, o, d, bg, target, torch.rand(o.shape[0], generator=gen), cfg.beta_alpha)
+            mse, seen_rays = cpu_photometric_step(fld, o, d, bg, target, torch.rand(o.shape[0], generator=gen),
+                                                  cfg.beta_alpha, ray_w)
             tvd, tvs = cpu_tv_step(fld, cfg.tv_points, gen) if cfg.tv_density > 0 or cfg.tv_sh > 0 else (0, 0)
             loss = mse + cfg.tv_density * tvd + cfg.tv_sh * tvs
+            seen_rays = torch.from_numpy(seen_rays)
         else:
             out = render_rays(fld, o, d, bg, jitter=True)
-            mse = F.mse_loss(out.rgb, target)
-            loss = mse + cfg.beta_alpha * opacity_prior(out.alpha) if cfg.beta_alpha > 0 else mse
+            se = ((out.rgb - target) ** 2).mean(-1)
+            mse = se.mean()
+            loss = mse if ray_w is None else (se * ray_w).mean()
+            loss = loss + cfg.beta_alpha * opacity_prior(out.alpha) if cfg.beta_alpha > 0 else loss
+            seen_rays = torch.cat([out.rgb, out.alpha[:, None]], -1).detach().cpu()
             if cfg.tv_density > 0 or cfg.tv_sh > 0:
                 tvd, tvs = tv_loss(fld, cfg.tv_points, gen)
                 loss = loss + cfg.tv_density * tvd + cfg.tv_sh * tvs
             loss.backward()
+        if robust:
+            bank.record_errors(pick, seen_rays[:, :3], seen_rays[:, 3], bg.cpu())
         fld.density.adam_step(cfg.lr_density * lr_scale)
         fld.sh.adam_step(cfg.lr_sh * lr_scale)
         fld.reset_sentinel()

@@ -43,7 +43,7 @@ def _sigmoid(x: float) -> float:
 
 @numba.njit(cache=True, fastmath=_FM, nogil=True, parallel=True)
 def render_rays_cpu(o: np.ndarray, d: np.ndarray, jitter: np.ndarray, bg: np.ndarray, target: np.ndarray,
-                    index: np.ndarray, occ: np.ndarray, res: int, dens: np.ndarray, sh: np.ndarray,
+                    ray_w: np.ndarray, index: np.ndarray, occ: np.ndarray, res: int, dens: np.ndarray, sh: np.ndarray,
                     gdens: np.ndarray, gsh: np.ndarray, touched_d: np.ndarray, touched_sh: np.ndarray,
                     act_shift: float, step: float, degree: int, weight_eps: float, grad_scale: float,
                     backward: bool, nearest: bool, beta_scale: float, out: np.ndarray) -> None:
@@ -52,7 +52,9 @@ def render_rays_cpu(o: np.ndarray, d: np.ndarray, jitter: np.ndarray, bg: np.nda
 
     ``o`` (B, 3) normalized ray origins (object at the origin, radius 1), ``d`` (B, 3) unit
     directions, ``jitter`` (B,) in [0, 1) (sample offset in steps), ``bg`` / ``target`` (B, 3)
-    background colour and composited target (``target`` unused without ``backward``).
+    background colour and composited target (``target`` unused without ``backward``);
+    ``ray_w`` (B,) each ray's weight in the squared error (1: plain L2; robust training
+    lowers it for rays that keep disagreeing, :func:`.fields.robust_weights`).
     ``index`` (res^3,) int32 lattice -> row (-1: inactive, read as the sentinel row N),
     ``occ`` (res^3,) bool dilated occupancy. ``dens`` (N+1,), ``sh`` (N+1, 3*nb) float32
     tables; ``gdens``/``gsh`` their gradient buffers (added to), ``touched_d`` /
@@ -173,7 +175,8 @@ def render_rays_cpu(o: np.ndarray, d: np.ndarray, jitter: np.ndarray, bg: np.nda
                 continue
             e0, e1, e2 = C0 - target[r, 0], C1 - target[r, 1], C2 - target[r, 2]
             out[r, 4] = e0 * e0 + e1 * e1 + e2 * e2
-            g0, g1, g2 = 2 * grad_scale * e0, 2 * grad_scale * e1, 2 * grad_scale * e2
+            gw = 2 * grad_scale * ray_w[r]
+            g0, g1, g2 = gw * e0, gw * e1, gw * e2
             # The opacity prior: A = 1 - exp(-sum tau), so dA/dsigma_i = step * T for every sample.
             gb = 0.0
             if beta_scale != 0.0:

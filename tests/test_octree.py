@@ -146,6 +146,13 @@ def test_cli_writes_a_self_describing_run_and_rejects_bad_input(baked, tmp_path)
     assert res.exit_code == 0, res.output
     assert json.loads((run / "run.json").read_text())["training"]["steps"] == 10
     assert CliRunner().invoke(main, ["plenoctree", str(tmp_path / "nope"), "-o", str(tmp_path / "r2")]).exit_code == 2
+    # Carving and robust training from the command line, recorded with the field's settings.
+    more = ["--carve", "0.2", "--robust-from", "0.5"]
+    res = CliRunner().invoke(main, args[:3] + [str(tmp_path / "r3")] + args[4:] + more)
+    assert res.exit_code == 0, res.output
+    field = json.loads((tmp_path / "r3" / "run.json").read_text())["field"]
+    assert field["carve_share"] == 0.2 and field["robust_from"] == 0.5
+    assert CliRunner().invoke(main, args[:3] + [str(tmp_path / "r4"), "--carve", "2"]).exit_code == 2
 
 
 def _random_tree(seed: int = 0, depth: int = 3) -> PlenOctree:
