@@ -12,6 +12,7 @@ Each part evaluates a run folder written by ``dbb-train plenoctree`` (train it f
         # (--steps N: fixed steps; --truth DIR: train on crops re-made from the ground truth)
     python bench/bench_plenoctree.py ceiling CAPTURE     # crops of the footage with the true coverage,
         # through the true cameras, against the truth: what the footage allows any matte
+    python bench/bench_plenoctree.py crops DATASET --capture CAPTURE   # the crops themselves against the truth
     python bench/bench_plenoctree.py carve DATASET --capture CAPTURE   # what carving removes, against the truth
     python bench/bench_plenoctree.py speed RUN           # render speed and size of the tree only
 """
@@ -305,6 +306,38 @@ def summarize_parts(parts: list[dict[str, float]]) -> dict[str, float]:
     return out
 
 
+def score_crops(dataset: Path, capture: Path, every: int = 8) -> dict:
+    """The dataset's crops themselves (no training) against the capture's ground truth: PSNR on
+    black and white (the object alone rendered through each crop camera at its time) and where
+    the error lies (:func:`error_parts`), for the held-out crops of both protocols (the time
+    split's test part, every ``every``-th crop), the time split's training crops and all."""
+    from dbb_capture.synth import load_ground_truth, render_object_rgba
+
+    frames = load_dataset(dataset).frames
+    _, _, model = load_ground_truth(capture)
+    rows, parts = [], []
+    for f in frames:
+        gt = render_object_rgba(model, f.intr, f.c2w, float(f.time or 0.0)).astype(np.float32) / 255
+        _, _, crop = frame_tensors(f, 1.0)
+        row = {}
+        for key, bg in (("black", 0.0), ("white", 1.0)):
+            t = gt[..., :3] * gt[..., 3:] + (1 - gt[..., 3:]) * bg
+            c = crop[..., :3] * crop[..., 3:] + (1 - crop[..., 3:]) * bg
+            row[f"psnr_{key}"] = psnr(float(((c - t) ** 2).mean()))
+        rows.append(row)
+        parts.append(error_parts(crop, gt))
+    out = {"dataset": str(dataset), "crops": len(frames)}
+    split = np.array([f.split for f in frames])
+    for name, sel in (("test_time", split == "test"), ("train_time", split == "train"),
+                      (f"every_{every}", np.arange(len(frames)) % every == 0), ("all", np.ones(len(frames), bool))):
+        picked = np.flatnonzero(sel)
+        if len(picked):
+            out[name] = {"views": len(picked), "psnr_black": mean_of([rows[i] for i in picked], "psnr_black"),
+                         "psnr_white": mean_of([rows[i] for i in picked], "psnr_white"),
+                         "error": summarize_parts([parts[i] for i in picked])}
+    return out
+
+
 def bench_capture(dataset: Path, capture: Path, run_dir: Path, minutes: float | None, res_max: int,
                   train: bool, field: dict | None = None, steps: int | None = None, truth: Path | None = None,
                   holdout_every: int = 0, prune_weight: float | None = None) -> dict:
@@ -364,11 +397,11 @@ def bench_capture(dataset: Path, capture: Path, run_dir: Path, minutes: float | 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("part", choices=["lego", "fox", "synth", "speed", "capture", "ceiling", "carve"])
+    ap.add_argument("part", choices=["lego", "fox", "synth", "speed", "capture", "ceiling", "carve", "crops"])
     ap.add_argument("path", type=Path,
-                    help="run folder (lego, fox), output folder (synth), dataset (capture, carve) or capture (ceiling)")
+                    help="run folder (lego, fox), output folder (synth), dataset (capture, carve, crops) or capture (ceiling)")
     ap.add_argument("--minutes", type=float, default=None, help="training budget (default 10 without --steps)")
-    ap.add_argument("--capture", type=Path, help="capture, carve: the synthetic capture (its ground_truth/)")
+    ap.add_argument("--capture", type=Path, help="capture, carve, crops: the synthetic capture (its ground_truth/)")
     ap.add_argument("--run", type=Path, help="capture: run folder to write (or read with --no-train)")
     ap.add_argument("--res-max", type=int, default=128, help="capture: finest lattice; carve: the lattice")
     ap.add_argument("--no-train", action="store_true", help="capture: score an existing run")
@@ -399,6 +432,10 @@ def main(argv: list[str] | None = None) -> int:
                             a.res_max, not a.no_train, a.field, a.steps, a.truth, a.holdout_every, a.prune_weight)
     elif a.part == "ceiling":
         res = footage_ceiling(a.path, a.crop_size)
+    elif a.part == "crops":
+        if a.capture is None:
+            ap.error("crops needs --capture")
+        res = score_crops(a.path, a.capture)
     elif a.part == "carve":
         if a.capture is None:
             ap.error("carve needs --capture")

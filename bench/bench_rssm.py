@@ -88,6 +88,17 @@ def still_truth(dataset: Path, capture: Path, steps: int = 150, samples: int = 2
                                                       np.float32), "truth": truth, "frame": k}
 
 
+def with_settings(model: rssm.Rssm, settings: list[str]) -> rssm.Rssm:
+    """``model`` rebuilt with other settings (``NAME=VALUE``) and the same weights: for settings
+    that leave the weights' shapes alone, e.g. ``flow_snap`` tried on a model trained without it."""
+    if not settings:
+        return model
+    cfg, _ = rssm.configs_from_settings(list(settings), model.cfg)
+    out = rssm.Rssm(cfg)
+    out.load_state_dict(model.state_dict())
+    return out.eval()
+
+
 def last_model(run: Path) -> rssm.Rssm:
     """The last trained model of a run (its checkpoint), where model.pt is the selected one."""
     ck = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=False)
@@ -180,19 +191,22 @@ def first_step(run: Path, dataset: Path, split: str = "test", temperature: float
     out = {"windows": len(starts), "split": split, "psnr_db": ps_(frame), "copy_first_db": ps_(ctx_pm)}
     if cfg.skip:
         xh = dec.heads(feat, ctx)
-        flow = torch.tanh(xh[:, -2:]) * (dec.max_step_flow if dec.accum else dec.max_flow)
+        flow = rssm.snap_flow(torch.tanh(xh[:, -2:]) * (dec.max_step_flow if dec.accum else dec.max_flow),
+                              dec.flow_snap)
         grid = dec.grid + flow.permute(0, 2, 3, 1)
         warped = torch.nn.functional.grid_sample(ctx_pm, grid, mode="bilinear", padding_mode="zeros",
                                                  align_corners=False)
         gen = torch.sigmoid(xh[:, :4])
         gen = torch.cat([gen[:, :3] * gen[:, 3:4], gen[:, 3:4]], 1)
         obj = ((x[:, 1, 3] > 0.5) | (x[:, 0, 3] > 0.5)).numpy()
-        share = torch.softmax(xh[:, 4:7], 1)[:, 1] if dec.copy3 else torch.sigmoid(xh[:, 4])
+        share = torch.softmax(xh[:, 4:7], 1)[:, 1] if dec.copy3 else rssm.snap_mask(torch.sigmoid(xh[:, 4:5]),
+                                                                                       dec.mask_snap)[:, 0]
         px = flow.norm(dim=1).numpy() * cfg.size / 2
         out.update({"warped_only_db": ps_(warped), "generated_only_db": ps_(gen),
                     "warp_share_on_object": round(float(share.numpy()[obj].mean()), 3),
                     "flow_px_mean_on_object": round(float(px[obj].mean()), 3),
-                    "flow_px_p95_on_object": round(float(np.percentile(px[obj], 95)), 3)})
+                    "flow_px_p95_on_object": round(float(np.percentile(px[obj], 95)), 3),
+                    "still_share_on_object": round(float((px[obj] == 0).mean()), 3)})
     return {k: round(v, 3) if isinstance(v, float) else v for k, v in out.items()}
 
 
@@ -288,6 +302,7 @@ def quality(dataset: Path, run: Path, capture: Path | None, minutes: float, step
                     "run_eval_motion_dataset_truth": meta["eval"]["motion"]})
     else:
         meta = json.loads((run / "run.json").read_text())
+        out["eval_settings"] = list(settings)       # tried on the trained weights (with_settings)
         out.update({"train_steps": meta["training"]["steps"],
                     "train_minutes": round(meta["training"]["seconds"] / 60, 2)})
     out["load_average_1min_after"] = round(os.getloadavg()[0], 2)
@@ -298,8 +313,12 @@ def quality(dataset: Path, run: Path, capture: Path | None, minutes: float, step
         still = {"first": data.rgba[k], "view": data.views[k], "truth": data.rgba[k + 1:k + 151], "frame": k}
     if still is not None:
         name = f"report-still-t{temperature:g}" + ("" if start_frame is None else f"-from{start_frame}")
-        out["still_view_eval"] = evaluate(run, dataset, still, temperature, name)
-        out["gain_vs_copy_first_train_test"] = train_test_gap(run, dataset, temperature)
+        model = None
+        if not train and settings:
+            model = with_settings(rssm.load_model(run), list(settings))
+            name += "-" + "-".join(s.replace("=", "") for s in settings)
+        out["still_view_eval"] = evaluate(run, dataset, still, temperature, name, model=model)
+        out["gain_vs_copy_first_train_test"] = train_test_gap(run, dataset, temperature, model=model)
         meta = json.loads((run / "run.json").read_text())
         if meta.get("selection"):
             # model.pt is the model selected on the held-out tail of the training split; the
@@ -348,11 +367,15 @@ def main() -> None:
     f.add_argument("dataset", type=Path)
     f.add_argument("--split", default="test", choices=["train", "test"])
     f.add_argument("--temperature", type=float, default=1.0)
+    f.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                   help="a setting tried on the trained weights, e.g. flow_snap=0.5 (repeatable)")
     r = sub.add_parser("protocols", help="gain over copy-first: one sample (run time), mean of samples, best of samples")
     r.add_argument("run", type=Path)
     r.add_argument("dataset", type=Path)
     r.add_argument("--samples", type=int, default=8)
     r.add_argument("--temperature", type=float, default=1.0)
+    r.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                   help="a setting tried on the trained weights (repeatable)")
     d = sub.add_parser("subset", help="a dataset with the training frames of the first SECONDS only (same test split)")
     d.add_argument("dataset", type=Path)
     d.add_argument("--seconds", type=float, required=True)
@@ -363,11 +386,12 @@ def main() -> None:
     a = ap.parse_args()
     torch.set_num_threads(getattr(a, "threads", 1))
     if a.cmd == "protocols":
-        out = protocols(a.run, a.dataset, a.samples, a.temperature)
+        out = protocols(a.run, a.dataset, a.samples, a.temperature,
+                        model=with_settings(rssm.load_model(a.run), a.set))
     elif a.cmd == "subset":
         out = subset(a.dataset, a.output, a.seconds)
     elif a.cmd == "first-step":
-        out = first_step(a.run, a.dataset, a.split, a.temperature)
+        out = first_step(a.run, a.dataset, a.split, a.temperature, model=with_settings(rssm.load_model(a.run), a.set))
     elif a.cmd == "blurred-copy":
         out = [blurred_copy(a.dataset, s) for s in (a.sigma or [0.5])]
     elif a.cmd == "speed":

@@ -89,6 +89,10 @@ class RssmConfig:
     max_step_flow: float = 0.25    # "accum": largest flow of one step, in image half-widths
     warp_leak: float = 0.0         # "accum": each step the warp's displacement shrinks by this fraction
                                    # (toward the context frame's layout), so its errors stay bounded
+    flow_snap: float = 0.0         # skip path: a flow shorter than this many pixels is exactly zero (the
+                                   # still parts are copied, not resampled; straight-through gradient)
+    mask_snap: float = 0.0         # skip path: a warp share above 1 - this is exactly 1 (no generated
+                                   # content mixed into what is copied; straight-through gradient)
     energy_scale: float = 0.0      # weight of the motion-energy match of the open loop (see energy_match)
     prior_first: bool = True       # also decode frame 1 from a prior sample at h_1 (the run-time first step)
     open_loop_from: int = 1        # the training open loop starts from the filtering state of this frame:
@@ -124,6 +128,8 @@ class RssmConfig:
             raise DbbError("RSSM compose accum warps the context frame: it needs skip")
         if self.motion_weight_of not in ("truth", "both"):
             raise DbbError(f"RSSM motion_weight_of must be truth or both, not {self.motion_weight_of!r}")
+        if self.flow_snap < 0.0 or not 0.0 <= self.mask_snap < 1.0:
+            raise DbbError(f"RSSM flow_snap must be >= 0 and mask_snap in [0, 1), not {self.flow_snap}, {self.mask_snap}")
         if not 0.0 <= self.warp_leak < 1.0:
             raise DbbError(f"RSSM warp_leak must be in [0, 1), not {self.warp_leak}")
         if self.filter_decode not in ("posterior", "prior"):
@@ -259,6 +265,25 @@ def identity_grid(n: int, size: int, device: torch.device | None = None) -> torc
     return torch.stack([gx, gy], -1)[None].expand(n, -1, -1, -1).contiguous()
 
 
+def snap_flow(flow: torch.Tensor, thresh: float) -> torch.Tensor:
+    """``flow`` (N, 2, S, S) with every vector shorter than ``thresh`` (same units) set to exactly
+    zero in the forward pass; the gradient passes as if it were not (straight-through), so a
+    snapped pixel can still learn to move. Sampling the identity grid returns the pixels exactly:
+    what does not move is copied, not resampled (a 0.2 px flow softens every edge by itself)."""
+    if thresh <= 0.0:
+        return flow
+    keep = ((flow * flow).sum(1, keepdim=True) >= thresh * thresh).to(flow.dtype)
+    return flow + (flow * keep - flow).detach()
+
+
+def snap_mask(mask: torch.Tensor, margin: float) -> torch.Tensor:
+    """A warp share ``mask`` (N, 1, S, S) in (0, 1) set to exactly 1 where it is above 1 - ``margin``
+    in the forward pass (straight-through gradient): no generated content mixed into copied pixels."""
+    if margin <= 0.0:
+        return mask
+    return mask + (torch.where(mask > 1.0 - margin, torch.ones_like(mask), mask) - mask).detach()
+
+
 def accumulated_warp(grid: torch.Tensor, flow: torch.Tensor, base: torch.Tensor, leak: float = 0.0) -> torch.Tensor:
     """Where each pixel of the next frame comes from in the context frame, (N, S, S, 2) grid_sample
     coordinates: ``grid`` the same for the current frame, ``flow`` (N, 2, S, S) the step's motion
@@ -357,6 +382,8 @@ class Decoder(nn.Module):
         self.accum = self.skip and cfg.compose == "accum"
         self.max_step_flow = float(cfg.max_step_flow)
         self.warp_leak = float(cfg.warp_leak)
+        self.flow_snap = 2.0 * float(cfg.flow_snap) / cfg.size     # pixels -> grid_sample units
+        self.mask_snap = float(cfg.mask_snap)
         # With the skip path the decoder also sees the context frame's viewpoint: warping that
         # frame to the current view needs to know where it was seen from.
         n_pe = 4 * cfg.view_freqs * ({"absolute": 2, "relative": 1, "both": 3}[cfg.decoder_view] + int(self.accum)
@@ -408,9 +435,10 @@ class Decoder(nn.Module):
         x = self.heads(feat, warp_maps(ctx, grid))
         gen = torch.sigmoid(x[:, :4])
         gen = torch.cat([gen[:, :3] * gen[:, 3:4], gen[:, 3:4]], 1)
-        grid = accumulated_warp(grid, torch.tanh(x[:, 5:7]) * self.max_step_flow, self.grid, self.warp_leak)
+        flow = snap_flow(torch.tanh(x[:, 5:7]) * self.max_step_flow, self.flow_snap)
+        grid = accumulated_warp(grid, flow, self.grid, self.warp_leak)
         warped = F.grid_sample(ctx_pm, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
-        mask = torch.sigmoid(x[:, 4:5])
+        mask = snap_mask(torch.sigmoid(x[:, 4:5]), self.mask_snap)
         return mask * warped + (1.0 - mask) * gen, grid
 
     def forward(self, feat: torch.Tensor, ctx: list[torch.Tensor], ctx_pm: torch.Tensor) -> torch.Tensor:
@@ -426,13 +454,13 @@ class Decoder(nn.Module):
         gen = torch.sigmoid(x[:, :4])
         gen = torch.cat([gen[:, :3] * gen[:, 3:4], gen[:, 3:4]], 1)
         f0 = 7 if self.copy3 else 5
-        flow = torch.tanh(x[:, f0:f0 + 2]) * self.max_flow
+        flow = snap_flow(torch.tanh(x[:, f0:f0 + 2]) * self.max_flow, self.flow_snap)
         grid = self.grid.to(x.dtype) + flow.permute(0, 2, 3, 1)
         warped = F.grid_sample(ctx_pm, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
         if self.copy3:
             m = torch.softmax(x[:, 4:7], 1)
             return m[:, 0:1] * ctx_pm + m[:, 1:2] * warped + m[:, 2:3] * gen
-        mask = torch.sigmoid(x[:, 4:5])
+        mask = snap_mask(torch.sigmoid(x[:, 4:5]), self.mask_snap)
         return mask * warped + (1.0 - mask) * gen
 
 

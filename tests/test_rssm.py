@@ -627,3 +627,50 @@ def test_motion_weights_of_both_weigh_change_predicted_where_none_comes():
         assert math.isfinite(loss.item())
     with pytest.raises(DbbError, match="motion_weight_of"):
         replace_cfg(SMALL, motion_weight_of="pred").validate()
+
+
+def test_snapped_flow_and_mask_copy_still_pixels_exactly_and_still_learn():
+    ctx_pm = rssm.premultiply(torch.rand(2, 4, 32, 32))
+    base = rssm.identity_grid(2, 32)
+    flow = torch.full((2, 2, 32, 32), 0.3 * 2 / 32, requires_grad=True)   # 0.3 px everywhere
+    with torch.no_grad():
+        flow[:, 0, :4] = 2.0 * 2 / 32                                      # 2 px in the top rows
+    snapped = rssm.snap_flow(flow, 0.5 * 2 / 32)
+    warp = lambda f: torch.nn.functional.grid_sample(ctx_pm, base + f.permute(0, 2, 3, 1), mode="bilinear",
+                                                     padding_mode="zeros", align_corners=False)
+    # A 0.3 px flow resamples (softens) the frame; snapped, the still rows are the frame exactly.
+    assert not torch.allclose(warp(flow.detach())[..., 8:, :], ctx_pm[..., 8:, :], atol=1e-3)
+    assert torch.allclose(warp(snapped.detach())[..., 8:, :], ctx_pm[..., 8:, :], atol=1e-6)
+    assert torch.equal(snapped[:, :, :4], flow[:, :, :4])                  # long flows are kept
+    snapped.sum().backward()                                                # straight-through gradient
+    assert torch.equal(flow.grad, torch.ones_like(flow))
+    m = torch.tensor([0.2, 0.93, 0.97], requires_grad=True)
+    s = rssm.snap_mask(m, 0.05)
+    assert torch.allclose(s, torch.tensor([0.2, 0.93, 1.0]))
+    s.sum().backward()
+    assert torch.equal(m.grad, torch.ones(3))
+    assert rssm.snap_flow(flow, 0.0) is flow and rssm.snap_mask(m, 0.0) is m
+    # In the composites: untrained blend (small flow) with a snap and the mask at ~1 copies exactly;
+    # the scripted stepper runs the same.
+    for compose in ("blend", "accum"):
+        torch.manual_seed(3)
+        mod = rssm.Rssm(replace_cfg(SMALL, compose=compose, flow_snap=1.0, mask_snap=0.05)).eval()
+        first = torch.rand(2, 4, 32, 32)
+        with torch.no_grad():
+            mod.decoder.ups[-1].bias[4] = 10.0                 # warp share 0.99995: snapped to 1
+            mod.decoder.ups[-1].weight[:, 5:7] = 0.0
+            mod.decoder.ups[-1].bias[5:7] = 0.05               # a 0.2-0.4 px flow everywhere: snapped to 0
+            out = rssm.rollout(rssm.Stepper(mod), first, torch.rand(2, 4, 3) * 30)
+            assert torch.allclose(rssm.premultiply(out), rssm.premultiply(first)[:, None].expand_as(out), atol=1e-5)
+            feat = torch.randn(2, mod.decoder.fc[0].in_features)
+            assert torch.allclose(mod.decoder(feat, mod.encoder.features(ctx_pm), ctx_pm), ctx_pm, atol=1e-6)
+            mod.decoder.flow_snap = 0.0                        # unsnapped, the same flow resamples
+            assert not torch.allclose(mod.decoder(feat, mod.encoder.features(ctx_pm), ctx_pm), ctx_pm, atol=1e-3)
+        loss, _ = rssm.sequence_loss(rssm.Rssm(replace_cfg(SMALL, compose=compose, flow_snap=1.0, mask_snap=0.05)),
+                                     torch.rand(2, 11, 4, 32, 32), torch.rand(2, 11, 3) * 30)
+        loss.backward()
+        assert math.isfinite(loss.item())
+    ts = rssm.script_stepper(rssm.Rssm(replace_cfg(SMALL, flow_snap=1.0, mask_snap=0.05)).eval())
+    assert ts.start(torch.rand(1, 4, 32, 32), torch.zeros(1, 3))[0].shape == (1, SMALL.deter)
+    with pytest.raises(DbbError, match="flow_snap"):
+        replace_cfg(SMALL, mask_snap=1.0).validate()
