@@ -39,12 +39,12 @@ def main() -> None:
               help="Without a split in the dataset, every n-th frame is held out for the report (0: none).")
 @click.option("--holdout", "holdout_names", default="", help="Comma-separated frame names (file stems) to hold out.")
 @click.option("--batch-rays", type=int, default=4096, show_default=True)
-@click.option("--robust-from", type=click.FloatRange(0, 1), default=1.0, show_default=True,
+@click.option("--robust-from", type=click.FloatRange(0, 1), default=None,
               help="From this fraction of the budget, rays whose error stays large lose weight (Cauchy IRLS), "
-                   "so the views outvote a matte's errors (1: off; 0.5 for preprocess crops).")
-@click.option("--carve", "carve_share", type=click.FloatRange(0, 1), default=0.0, show_default=True,
+                   "so the views outvote a matte's errors (1: off; default 0.5 on preprocess crops, else off).")
+@click.option("--carve", "carve_share", type=click.FloatRange(0, 1), default=None,
               help="Leave out space that at least this share of the views that see it see as clearly empty "
-                   "(0: off; 0.2 for preprocess crops).")
+                   "(0: off; default 0.1 on preprocess crops, else off).")
 @click.option("--threads", type=click.IntRange(1, 256), default=None,
               help="CPU threads (default: torch's choice; on a machine shared with other jobs 1 is faster).")
 def plenoctree(dataset, out, minutes, steps, downscale, resume, overwrite, mode, sh_degree, res_max,

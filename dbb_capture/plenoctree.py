@@ -123,7 +123,7 @@ def train_run(dataset: Path, out: Path, cfg: RunConfig, field_cfg: FieldConfig |
         volume = state.field.volume
         mode = state.field.cfg.mode
     fcfg = field_cfg or FieldConfig()
-    fcfg = replace(fcfg, mode=mode)
+    fcfg = replace(fcfg, mode=mode).for_dataset(ds.kind)
     fcfg.validate()
     bank = build_ray_bank(train_f, cfg.downscale, volume, mode,
                           observed=(state.field.cfg if state is not None else fcfg).observed_loss)

@@ -314,7 +314,7 @@ def test_robust_training_lets_the_views_outvote_a_false_object(tmp_path):
         bank = build_ray_bank([f for f in (frames if clean else bad_frames) if f.split == "train"], 1, vol)
         torch.manual_seed(0)
         st = train(TrainState(new_field(cfg, vol, torch.device("cpu"))), bank, Budget(steps=400))
-        if cfg.robust_from < 1:
+        if cfg.robust_from is not None and cfg.robust_from < 1:
             assert bank.error is not None and not bank.error.isnan().all()
         out = []
         for f in frames:
@@ -365,3 +365,15 @@ def test_carving_keeps_the_object_and_clears_what_the_views_see_through(tmp_path
     carved = field.carved(bank.views, 0.2)
     assert carved.n_active == int((~cut).sum())
     assert torch.equal(carved.active, field.active[torch.from_numpy(~cut)])
+
+
+def test_matte_treatments_follow_the_dataset_kind_unless_set():
+    """Preprocess crops get carving and robust training; datasets whose alpha is the truth do
+    not; a value given explicitly (even "off") is kept."""
+    crops = FieldConfig().for_dataset("crops")
+    assert (crops.carve_share, crops.robust_from) == (0.1, 0.5)
+    for kind in ("blender", "transforms"):
+        other = FieldConfig().for_dataset(kind)
+        assert (other.carve_share, other.robust_from) == (0.0, 1.0)
+    kept = FieldConfig(carve_share=0.0, robust_from=1.0).for_dataset("crops")
+    assert (kept.carve_share, kept.robust_from) == (0.0, 1.0)

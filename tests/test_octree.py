@@ -134,6 +134,8 @@ def test_cli_writes_a_self_describing_run_and_rejects_bad_input(baked, tmp_path)
     assert res.exit_code == 0, res.output
     meta = json.loads((run / "run.json").read_text())
     assert meta["mode"] == "object" and meta["tree"]["colour_activation"] == "sigmoid"
+    # A transforms dataset's alpha is the truth: no carving or robust training unless asked for.
+    assert meta["field"]["carve_share"] == 0.0 and meta["field"]["robust_from"] == 1.0
     assert meta["object"]["radius"] == pytest.approx(vol.radius)
     loaded = load_run(run)
     assert loaded.tree().data_format == "SH9"
