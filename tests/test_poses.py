@@ -21,7 +21,7 @@ from dbb_capture.cli.capture import main
 from dbb_capture.errors import DbbError
 from dbb_capture.io import Frame
 from dbb_capture.poses import (BoardDetector, Detection, DetectorConfig, FramePose, PoseConfig,
-                               detect_frames, diagnose_no_board, pose_frames, refine_jointly,
+                               detect_frames, diagnose_no_board, fuse_with_path, pose_frames, refine_jointly,
                                refine_saddles, refine_xjunctions, reject_outliers, solve_pose)
 from dbb_capture.synth import Renderer, SynthConfig, make_scene, sensor, write_capture
 
@@ -369,6 +369,38 @@ def test_corner_off_by_pixels_is_dropped(rendered):
     plain = pose_frames([det], BOARD, intr, PoseConfig(corner_floor_px=1e9))[0]
     assert plain.inliers is None
     assert _rot_err_deg(pose.c2w[:3, :3], c2w[:3, :3]) < 0.5 * _rot_err_deg(plain.c2w[:3, :3], c2w[:3, :3])
+
+
+def test_weak_pose_is_fused_with_the_path_and_a_real_jerk_stays():
+    """A frame that sees 6 corners in one corner of the board (one of them 0.6 px off) is pulled
+    onto its neighbours' path; a frame where the camera really leaves the smooth path (seen
+    whole) keeps its step; the rest, smoothed, are no worse on average."""
+    intr = SynthConfig(width=480, height=360, board=BOARD, dist=(-0.12, 0.05, 0.001, -0.001, 0.0)).intrinsics()
+    rng = np.random.default_rng(4)
+    obj = BOARD.chessboard_corners()
+    truth, dets, weak, jerk = [], [], 7, 3
+    for i in range(15):
+        c2w = _view_c2w(-40 + 5 * i, 50, 0.6, BOARD.center)
+        if i == jerk:
+            c2w[:3, 3] += [0.004, -0.003, 0.0]                 # a real 5 mm step off the path
+        ids = np.array([0, 1, 2, 6, 7, 8]) if i == weak else np.arange(len(obj))
+        corners = project_points(obj[ids], c2w, intr) + rng.normal(0, 0.1, (len(ids), 2))
+        if i == weak:
+            corners[5] += [0.6, 0.0]
+        truth.append(c2w)
+        dets.append(Detection(i, i / 10, f"{i:05d}", ids, corners, 17, 1.0))
+    measured = pose_frames(dets, BOARD, intr)
+    fused = fuse_with_path(dets, measured, BOARD, intr)
+    err = lambda ps, i: float(np.linalg.norm(ps[i].c2w[:3, 3] - truth[i][:3, 3]) * 1000)  # mm
+    assert all(p.posed for p in fused)
+    assert err(measured, weak) > 3.0                            # the weak frame is really off
+    assert err(fused, weak) < 0.2 * err(measured, weak)
+    assert fused[weak].path_shift_mm > 3.0
+    assert err(fused, jerk) < 1.0                               # 5 mm off the path, and kept
+    strong = [i for i in range(15) if i != weak]
+    assert np.mean([err(fused, i) for i in strong]) <= np.mean([err(measured, i) for i in strong])
+    off = fuse_with_path(dets, measured, BOARD, intr, PoseConfig(path_window=0))
+    assert all(np.array_equal(a.c2w, b.c2w) for a, b in zip(off, measured))
 
 
 def test_joint_refinement_keeps_the_calibrations_distortion_terms(rendered):
