@@ -40,7 +40,7 @@ import numpy as np
 from dbb_capture.board import BoardSpec
 from dbb_capture.cameras import opencv_from_opengl
 from dbb_capture.io import VideoSource, open_footage
-from dbb_capture.poses import DetectorConfig, estimate_poses
+from dbb_capture.poses import DetectorConfig, PoseConfig, estimate_poses
 
 # dbb_capture.synth (and torch with it) is imported inside the functions that render: spawned
 # pose workers re-import this main module, and torch would cost each of them seconds to load.
@@ -89,10 +89,11 @@ def board_in_view(cams: dict, board: BoardSpec, intr) -> np.ndarray:
 
 
 def accuracy(work: Path, seconds: float, fps: float, cases: list[int] | None = None,
-             seeds: list[int] | None = None, refine: bool = True) -> None:
+             seeds: list[int] | None = None, refine: bool = True, path_window: int | None = None) -> None:
     """``cases``: indices into CASES (repeats allowed), ``seeds``: one per case (default 10 + k,
     the table's captures; other seeds render further captures with the same settings);
-    ``refine``: also self-calibrated with ``--refine``."""
+    ``refine``: also self-calibrated with ``--refine``; ``path_window``: the poses' fusion with the
+    camera path (``PoseConfig.path_window``; 0: off; None: the default)."""
     from dbb_capture.synth import SynthConfig, load_ground_truth, write_capture
 
     rows = []
@@ -109,11 +110,12 @@ def accuracy(work: Path, seconds: float, fps: float, cases: list[int] | None = N
                           cap, overwrite=True)
         intr, cams, _ = load_ground_truth(cap)
         src = open_footage(cap)
-        known_run = estimate_poses(src, board, intr)
+        gates = PoseConfig() if path_window is None else PoseConfig(path_window=path_window)
+        known_run = estimate_poses(src, board, intr, pose_cfg=gates)
         known = errors(known_run, cams, board)
         selfcal = {}
         for r in (False, True) if refine else (False,):   # preprocess's default, and with --refine
-            run = estimate_poses(src, board, None, refine=r)
+            run = estimate_poses(src, board, None, refine=r, pose_cfg=gates)
             selfcal[r] = {**errors(run, cams, board), "fx_err_pct": 100 * (run.intrinsics.fx / intr.fx - 1)}
         selfcal.setdefault(True, None)
         in_view = board_in_view(cams, board, intr)
@@ -246,11 +248,13 @@ def main() -> None:
     ap.add_argument("--cases", help="accuracy: comma-separated indices into CASES (default all).")
     ap.add_argument("--seeds", help="accuracy: one synth seed per case (default 10 + index).")
     ap.add_argument("--no-refine", action="store_true", help="accuracy: skip the runs with --refine.")
+    ap.add_argument("--path-window", type=int, default=None,
+                    help="accuracy: posed neighbours each side in the fusion with the camera path (0: off; default: the pose stage's)")
     a = ap.parse_args()
     a.work.mkdir(parents=True, exist_ok=True)
     if a.what == "accuracy":
         ints = lambda v: None if v is None else [int(x) for x in v.split(",")]   # noqa: E731
-        accuracy(a.work, a.seconds, a.fps, ints(a.cases), ints(a.seeds), not a.no_refine)
+        accuracy(a.work, a.seconds, a.fps, ints(a.cases), ints(a.seeds), not a.no_refine, a.path_window)
     elif a.what == "calibration":
         calibration(a.work)
     else:
