@@ -16,6 +16,10 @@
              .venv/bin/python bench/bench_rssm.py subset /tmp/long_ds --seconds 24 -o /tmp/long_24s
     first-step: what the run-time first step loses against copying (its candidates, mask, flow)
              .venv/bin/python bench/bench_rssm.py first-step /tmp/rssm_run /tmp/dyn_ds
+    motion:  where the still-view motion goes: the energy ratio per block of steps at temperatures
+             0 / 1 / 2 (0 = the prior mean: motion the deterministic path carries) and per
+             open-loop step on the test windows
+             .venv/bin/python bench/bench_rssm.py motion /tmp/rssm_run /tmp/dyn_ds --capture sample_data/dynamic
     blurred-copy: what copy-first blurred more at each step (a hedge that never moves) scores
              .venv/bin/python bench/bench_rssm.py blurred-copy /tmp/dyn_ds --sigma 0.5 --sigma 1
 
@@ -244,6 +248,50 @@ def protocols(run: Path, dataset: Path, samples: int = 8, temperature: float = 1
                                       "best_of_samples": round(float(per.max(0).mean() - copy), 3)}}
 
 
+@torch.no_grad()
+def motion(run: Path, dataset: Path, still: dict, temperatures: list[float] = (0.0, 1.0, 2.0), samples: int = 3,
+           model: rssm.Rssm | None = None) -> dict:
+    """Where the still-view motion goes. ``still`` as :func:`still_truth` (``first`` (S, S, 4) uint8,
+    ``view`` (3,), ``truth`` (T, S, S, 4) uint8). For each temperature (0 = the prior mean) and
+    ``samples`` seeds: the motion-energy ratio (mean |frame change| of the rollout over the
+    truth's) in blocks of steps 1-10 (the trained open loop), 11-30, 31-75, 76-150 and over all,
+    and the coherence (:func:`rssm.motion_coherence`). Also, on the test windows (moving camera,
+    temperature 1, seed 0), the ratio per open-loop step 1..10 (step 1 from the context frame).
+
+    A rollout whose motion comes from the deterministic path moves at temperature 0; one whose
+    motion is only the prior's noise freezes there and moves in proportion to the temperature."""
+    model = (model if model is not None else rssm.load_model(run)).eval()
+    truth = rssm._pm_np(still["truth"])
+    n = len(truth)
+    t_e = np.abs(np.diff(truth.astype(np.float64), axis=0)).mean(axis=(1, 2, 3))       # (n - 1,)
+    blocks = [(a, b) for a, b in ((0, 9), (9, 29), (29, 74), (74, n - 1)) if b <= n - 1 and a < b]
+    f0 = torch.from_numpy(still["first"][None]).permute(0, 3, 1, 2).float() / 255.0
+    views = torch.from_numpy(np.asarray(still["view"], np.float32)[None, None]).expand(-1, n + 1, -1).contiguous()
+    out: dict = {"blocks": [f"{a + 1}-{b + 1}" for a, b in blocks] + ["all"], "per_temperature": {}}
+    for temp in temperatures:
+        rows = []
+        for s in range(samples if temp > 0 else 1):
+            torch.manual_seed(s + 1)
+            long = rssm._pm_np(rssm.rollout(rssm.Stepper(model, temp), f0, views)[0].permute(0, 2, 3, 1).numpy())
+            p_e = np.abs(np.diff(long.astype(np.float64), axis=0)).mean(axis=(1, 2, 3))
+            coh = rssm.motion_coherence(long)
+            rows.append({"ratio": [round(float(p_e[a:b].mean() / t_e[a:b].mean()), 3) for a, b in blocks]
+                         + [round(float(p_e.mean() / t_e.mean()), 3)],
+                         "coherence": None if coh is None else round(coh, 3)})
+        out["per_temperature"][f"{temp:g}"] = rows
+    out["truth_coherence"] = round(rssm.motion_coherence(truth), 3)
+    data = rssm.load_sequences(dataset, model.cfg.size)
+    starts = data.starts("test")[:64]
+    x, v = rssm._batch(data, starts, torch.device("cpu"))                              # premultiplied
+    torch.manual_seed(0)
+    first = torch.from_numpy(data.rgba[starts]).permute(0, 3, 1, 2).float() / 255.0
+    pred = rssm.premultiply(rssm.rollout(rssm.Stepper(model, 1.0), first, v))
+    seq = torch.cat([x[:, :1], pred], 1).numpy()
+    e = lambda a: np.abs(np.diff(a.astype(np.float64), axis=1)).mean(axis=(0, 2, 3, 4))
+    out["test_windows_ratio_per_step"] = [round(float(a / b), 3) for a, b in zip(e(seq), e(x.numpy()))]
+    return out
+
+
 def subset(dataset: Path, out: Path, seconds: float) -> dict:
     """A copy of a preprocess dataset's crops.json that trains on less footage: the training frames
     of the first ``seconds`` of the capture and the same test frames and windows (images linked,
@@ -376,6 +424,16 @@ def main() -> None:
     r.add_argument("--temperature", type=float, default=1.0)
     r.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                    help="a setting tried on the trained weights (repeatable)")
+    m = sub.add_parser("motion", help="where the still-view motion goes: energy ratio per block of steps and temperature")
+    m.add_argument("run", type=Path)
+    m.add_argument("dataset", type=Path)
+    m.add_argument("--capture", type=Path, default=None,
+                   help="the synthetic capture (still-view truth rendered once, cached beside the run as .RUN.still.pt)")
+    m.add_argument("--start-frame", type=int, default=0, help="fixed-camera footage without a cache: the rollout's start")
+    m.add_argument("--temperature", type=float, action="append", default=[], help="repeatable (default 0, 1, 2)")
+    m.add_argument("--samples", type=int, default=3, help="sampled rollouts per temperature above 0")
+    m.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                   help="a setting tried on the trained weights (repeatable)")
     d = sub.add_parser("subset", help="a dataset with the training frames of the first SECONDS only (same test split)")
     d.add_argument("dataset", type=Path)
     d.add_argument("--seconds", type=float, required=True)
@@ -392,6 +450,18 @@ def main() -> None:
         out = subset(a.dataset, a.output, a.seconds)
     elif a.cmd == "first-step":
         out = first_step(a.run, a.dataset, a.split, a.temperature, model=with_settings(rssm.load_model(a.run), a.set))
+    elif a.cmd == "motion":
+        cache = a.run.parent / f".{a.run.name}.still.pt"
+        if a.capture is not None and not cache.is_file():
+            torch.save(still_truth(a.dataset, a.capture), cache)
+        if cache.is_file():
+            still = torch.load(cache, weights_only=False)
+        else:                                   # a fixed camera: the footage is its own truth
+            data = rssm.load_sequences(a.dataset, rssm.load_model(a.run).cfg.size)
+            k = a.start_frame
+            still = {"first": data.rgba[k], "view": data.views[k], "truth": data.rgba[k + 1:k + 151], "frame": k}
+        out = motion(a.run, a.dataset, still, a.temperature or [0.0, 1.0, 2.0], a.samples,
+                     model=with_settings(rssm.load_model(a.run), a.set))
     elif a.cmd == "blurred-copy":
         out = [blurred_copy(a.dataset, s) for s in (a.sigma or [0.5])]
     elif a.cmd == "speed":
