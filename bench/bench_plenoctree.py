@@ -208,10 +208,7 @@ def footage_ceiling(capture: Path, size: int = 128, fill: float = 0.9, test_frac
         for tag, rgba in (("raw", np.concatenate([observed, alpha[..., None]], -1)),
                           ("unmixed", straight_rgba(observed, room, alpha.astype(np.float32) / 255))):
             c = rgba.astype(np.float32) / 255
-            for key, bg in (("black", 0.0), ("white", 1.0)):
-                t = gt[..., :3] * gt[..., 3:] + (1 - gt[..., 3:]) * bg
-                m = c[..., :3] * c[..., 3:] + (1 - c[..., 3:]) * bg
-                row[f"{tag}_{key}"] = psnr(float(((m - t) ** 2).mean()))
+            row.update({f"{tag}_{key}": v for key, v in psnr_on_backgrounds(c, gt).items()})
             row[f"{tag}_parts"] = error_parts(c, gt)
         rows.append(row)
     out = {"capture": str(capture), "size": size, "crops": len(rows)}
@@ -306,6 +303,17 @@ def summarize_parts(parts: list[dict[str, float]]) -> dict[str, float]:
     return out
 
 
+def psnr_on_backgrounds(rgba: np.ndarray, gt: np.ndarray) -> dict[str, float]:
+    """PSNR (dB) of straight RGBA ``rgba`` (H, W, 4) float 0..1 against the truth ``gt`` (same),
+    both composited on black and on white: {"black": ..., "white": ...}."""
+    out = {}
+    for key, bg in (("black", 0.0), ("white", 1.0)):
+        t = gt[..., :3] * gt[..., 3:] + (1 - gt[..., 3:]) * bg
+        m = rgba[..., :3] * rgba[..., 3:] + (1 - rgba[..., 3:]) * bg
+        out[key] = psnr(float(((m - t) ** 2).mean()))
+    return out
+
+
 def score_crops(dataset: Path, capture: Path, every: int = 8) -> dict:
     """The dataset's crops themselves (no training) against the capture's ground truth: PSNR on
     black and white (the object alone rendered through each crop camera at its time) and where
@@ -319,12 +327,7 @@ def score_crops(dataset: Path, capture: Path, every: int = 8) -> dict:
     for f in frames:
         gt = render_object_rgba(model, f.intr, f.c2w, float(f.time or 0.0)).astype(np.float32) / 255
         _, _, crop = frame_tensors(f, 1.0)
-        row = {}
-        for key, bg in (("black", 0.0), ("white", 1.0)):
-            t = gt[..., :3] * gt[..., 3:] + (1 - gt[..., 3:]) * bg
-            c = crop[..., :3] * crop[..., 3:] + (1 - crop[..., 3:]) * bg
-            row[f"psnr_{key}"] = psnr(float(((c - t) ** 2).mean()))
-        rows.append(row)
+        rows.append({f"psnr_{key}": v for key, v in psnr_on_backgrounds(crop, gt).items()})
         parts.append(error_parts(crop, gt))
     out = {"dataset": str(dataset), "crops": len(frames)}
     split = np.array([f.split for f in frames])

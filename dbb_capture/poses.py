@@ -742,6 +742,13 @@ def solve_pose(obj: np.ndarray, img: np.ndarray, intr: Intrinsics) -> tuple[np.n
     return _c2w(best[1], best[2]), best[0], float(ratio), _c2w(other[1], other[2])
 
 
+def _project(obj: np.ndarray, c2w: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    """Board points ``obj`` (N, 3) seen by camera ``c2w`` -> (N, 2) px (distorted)."""
+    w2c = invert_rigid(c2w)
+    proj, _ = cv2.projectPoints(obj, cv2.Rodrigues(w2c[:3, :3])[0], w2c[:3, 3], intr.K, intr.dist_array)
+    return proj.reshape(-1, 2)
+
+
 def _corner_inliers(obj: np.ndarray, img: np.ndarray, c2w: np.ndarray, intr: Intrinsics,
                     cfg: PoseConfig) -> np.ndarray | None:
     """Corners (N,) bool that fit pose ``c2w``, or None when all do (or too few would remain).
@@ -749,9 +756,7 @@ def _corner_inliers(obj: np.ndarray, img: np.ndarray, c2w: np.ndarray, intr: Int
     A corner partly hidden (by the object, a finger, the frame edge) or caught on clutter sits
     pixels off while the rest agree to a few hundredths: one such corner tilts the whole pose.
     """
-    w2c = invert_rigid(c2w)
-    proj, _ = cv2.projectPoints(obj, cv2.Rodrigues(w2c[:3, :3])[0], w2c[:3, 3], intr.K, intr.dist_array)
-    res = np.linalg.norm(proj.reshape(-1, 2) - img, axis=1)
+    res = np.linalg.norm(_project(obj, c2w, intr) - img, axis=1)
     sigma = float(np.median(res)) / 1.1774  # median of a 2D Gaussian's radius is 1.1774 sigma
     keep = res <= max(cfg.corner_k * sigma, cfg.corner_floor_px)
     if keep.all() or keep.sum() < max(cfg.min_corners, 4, math.ceil((1 - cfg.corner_drop) * len(res))):
@@ -843,13 +848,6 @@ def reject_outliers(poses: Sequence[FramePose], cfg: PoseConfig = PoseConfig()) 
             out[i] = replace(p, status="outlier")
             active.pop(j)
     return out
-
-
-def _project(obj: np.ndarray, c2w: np.ndarray, intr: Intrinsics) -> np.ndarray:
-    """Board points ``obj`` (N, 3) seen by camera ``c2w`` -> (N, 2) px (distorted)."""
-    w2c = invert_rigid(c2w)
-    proj, _ = cv2.projectPoints(obj, cv2.Rodrigues(w2c[:3, :3])[0], w2c[:3, 3], intr.K, intr.dist_array)
-    return proj.reshape(-1, 2)
 
 
 def _moved(c2w: np.ndarray, x: np.ndarray) -> np.ndarray:
