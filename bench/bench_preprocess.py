@@ -125,17 +125,18 @@ def _estimated_c2w(dataset: Path, fr: dict) -> np.ndarray:
 
 
 def both_passes(crops: list, times: np.ndarray, fill: float, cfg, counts: np.ndarray | None = None) -> list[np.ndarray]:
-    """Straight RGBA (S, S, 4) uint8 of every first-pass crop (:class:`~dbb_capture.crops.ObjectCrop`,
+    """Straight RGBA (S, S, 4) uint8 (the output size) of every first-pass crop (:class:`~dbb_capture.crops.ObjectCrop`,
     in time order, ``times`` (N,) s) after the second pass, as the crops stage runs it: the
     capture's statistics (``counts``: summed sure object colours where a prediction was a guess),
     matte again, temporal median over neighbouring frames."""
-    from dbb_capture.crops import follows_previous, rematte as second, vote_neighbours, voted_rgba
+    from dbb_capture.crops import at_output, follows_previous, rematte as second, vote_neighbours, voted_rgba
     from dbb_capture.matte import capture_matte
 
     cap = capture_matte([oc.noise for oc in crops], counts, [oc.room_detail for oc in crops], cfg.sharp_min_detail)
     alphas = [second(oc, fill, cap, cfg) for oc in crops]
     linked = follows_previous(times)
-    return [voted_rgba(oc, [alphas[j] for j in vote_neighbours(k, linked)]) for k, oc in enumerate(crops)]
+    return [at_output(replace(oc, rgba=voted_rgba(oc, [alphas[j] for j in vote_neighbours(k, linked)]))).rgba
+            for k, oc in enumerate(crops)]
 
 
 def rematte(capture: Path, dataset: Path) -> tuple[Path, Path]:
@@ -145,7 +146,7 @@ def rematte(capture: Path, dataset: Path) -> tuple[Path, Path]:
     import shutil
 
     from dbb_capture.background import BackgroundModel
-    from dbb_capture.crops import object_crop
+    from dbb_capture.crops import at_output, crop_camera, matte_scale, object_crop
     from dbb_capture.io import open_footage
     from dbb_capture.matte import MatteConfig, sure_object_counts
 
@@ -157,9 +158,11 @@ def rematte(capture: Path, dataset: Path) -> tuple[Path, Path]:
     frames = doc["frames"]
     images = {f.index: f.image for f in open_footage(capture / "video.mp4").read(sorted(fr["source_frame"] for fr in frames))}
     crops, counts = [], None
+    scale = matte_scale(np.array([crop_camera(_estimated_c2w(dataset, fr), intr, center, radius, up, size, fill).window_px
+                                  for fr in frames]), size, cfg.supersample_between)
     for fr in frames:
         oc = object_crop(images[fr["source_frame"]], intr, _estimated_c2w(dataset, fr), center, radius, up, size, fill,
-                         model.render, cfg, model.guessed)
+                         model.render, cfg, model.guessed, scale)
         crops.append(oc)
         if oc.guessed is not None and oc.guessed.any():
             c = sure_object_counts(oc.rgba, oc.guessed, cfg.colour_bins)
@@ -173,7 +176,7 @@ def rematte(capture: Path, dataset: Path) -> tuple[Path, Path]:
         shutil.copytree(dataset, out, ignore=shutil.ignore_patterns("images", "masks", "colmap"))
         outs.append(out)
     for fr, oc, two in zip(frames, crops, voted):
-        for out, rgba in zip(outs, (oc.rgba, two)):
+        for out, rgba in zip(outs, (at_output(oc).rgba, two)):
             cv2.imwrite(str(out / fr["file_path"]), cv2.cvtColor(rgba, cv2.COLOR_RGBA2BGRA))
     return outs[0], outs[1]
 
@@ -343,7 +346,7 @@ def quality(work: Path, captures: list[Path], minutes: float, rescore: bool = Fa
 def speed(work: Path, minutes: float) -> None:
     from dbb_capture.background import BackgroundModel
     from dbb_capture.board import BoardSpec
-    from dbb_capture.crops import object_crop, rematte, up_from_cameras, voted_rgba
+    from dbb_capture.crops import at_output, object_crop, rematte, up_from_cameras, voted_rgba
     from dbb_capture.matte import capture_matte
     from dbb_capture.io import open_footage
     from dbb_capture.poses import DetectorConfig, detect_frames, fuse_with_path, pose_frames
@@ -395,7 +398,7 @@ def speed(work: Path, minutes: float) -> None:
     capture = capture_matte(noises, None, details)
     alphas = [rematte(oc, 0.9, capture) for oc in crops]
     for k, oc in enumerate(crops):
-        voted_rgba(oc, alphas[max(0, k - 1):k + 2])
+        at_output(replace(oc, rgba=voted_rgba(oc, alphas[max(0, k - 1):k + 2])))
     timings["second pass"] = time.monotonic() - t
     total = time.monotonic() - t_all
     print(f"background stage (pose {rep['clean_plate']['frames']}-frame clean plate, cut crops, plane sweep, "

@@ -37,8 +37,11 @@ from .crops import (
     CropRecord,
     ObjectCrop,
     alpha_in_frame,
+    at_output,
+    crop_camera,
     crops_json,
     follows_previous,
+    matte_scale,
     object_crop,
     on_checker,
     rematte,
@@ -360,6 +363,7 @@ class _CropSegment:
     size: int
     fill: float
     matte: MatteConfig
+    scale: int                   # the matte runs at this many times ``size`` (:func:`~.crops.matte_scale`)
     model: Path                  # background/field.pt
     scratch: Path                # where the first pass leaves each crop's arrays for the second
     sheet_at: frozenset
@@ -375,6 +379,7 @@ class _FirstMatte:
     touches_border: bool
     noise: float                 # the matte's noise level in this crop
     room_detail: float = float("nan")  # share of the room's detail the prediction keeps (nan: not measured)
+    scale: int = 1               # the scratch arrays (and ``cam``) are at this many times the output size
 
 
 @dataclass(frozen=True)
@@ -427,7 +432,7 @@ def _crop_segment(seg: _CropSegment, tick: Callable[[int], None] | None = None) 
     for f in seg.source.read(sorted(seg.c2w)):
         c2w = seg.c2w[f.index]
         oc = object_crop(f.image, seg.intr, c2w, sp.center, sp.radius, sp.up, seg.size, seg.fill,
-                         model.render, seg.matte, model.guessed)
+                         model.render, seg.matte, model.guessed, seg.scale)
         if oc.guessed is not None and oc.guessed.any():
             c = sure_object_counts(oc.rgba, oc.guessed, seg.matte.colour_bins)
             counts = c if counts is None else counts + c
@@ -437,7 +442,7 @@ def _crop_segment(seg: _CropSegment, tick: Callable[[int], None] | None = None) 
         np.savez(seg.scratch / f"{f.name}.npz", observed=oc.observed, predicted=oc.predicted, alpha=oc.rgba[..., 3],
                  guessed=oc.guessed if oc.guessed is not None else np.zeros(0, bool),
                  inside=oc.inside if oc.inside is not None else np.zeros(0, np.uint8), **extra)
-        out.append(_FirstMatte(f.index, f.name, oc.cam, oc.touches_border, oc.noise, oc.room_detail))
+        out.append(_FirstMatte(f.index, f.name, oc.cam, oc.touches_border, oc.noise, oc.room_detail, oc.scale))
         tick(1)
     return _FirstPass(out, counts)
 
@@ -447,7 +452,7 @@ def _load_crop(scratch: Path, fm: _FirstMatte) -> tuple[ObjectCrop, np.ndarray |
     with np.load(scratch / f"{fm.name}.npz") as z:
         g, inside = z["guessed"], z["inside"]
         oc = ObjectCrop(fm.cam, z["observed"], z["predicted"], np.zeros(0, np.uint8), fm.touches_border,
-                        g if g.size else None, inside if inside.size else None)
+                        g if g.size else None, inside if inside.size else None, scale=fm.scale)
         return oc, (z["sheet_frame"] if "sheet_frame" in z else None)
 
 
@@ -476,7 +481,7 @@ def _matte_segment(seg: _MatteSegment, tick: Callable[[int], None] | None = None
             continue
         nb = [chain[j] for j in vote_neighbours(k, linked)]
         oc, sheet_frame, _ = load(fm)
-        oc = replace(oc, rgba=voted_rgba(oc, [load(c)[2] for c in nb]))
+        oc = at_output(replace(oc, rgba=voted_rgba(oc, [load(c)[2] for c in nb])))
         for i in [i for i in loaded if i < chain[max(0, k - 1)].index]:
             del loaded[i]                                  # keep the sliding window small
         _write_png(seg.out / f"crops/{fm.name}.png", cv2.cvtColor(oc.rgba, cv2.COLOR_RGBA2BGRA))
@@ -500,9 +505,12 @@ def _refine_background(ctx: StageContext, bg: BackgroundOutput, crops: list[_Fir
 
     def rays():
         for fm in crops:
+            oc = _load_crop(scratch, fm)[0]
             with np.load(scratch / f"{fm.name}.npz") as z:
-                inside = z["inside"] if z["inside"].size else None
-                yield room_rays(fm.cam, z["observed"], z["alpha"], inside, grow)
+                alpha = z["alpha"]
+            # at the output size: the rays and the margin are the same whatever the matte's scale
+            oc = at_output(replace(oc, rgba=np.concatenate([oc.observed, alpha[..., None]], -1)))
+            yield room_rays(oc.cam, oc.observed, oc.rgba[..., 3], oc.inside, grow)
 
     task = prog.add_task("train background again on the mattes' room", total=100, info="")
     model = refine_on_room(bg.model, rays(), lambda log, frac: prog.update(
@@ -543,6 +551,12 @@ def crops_stage(ctx: StageContext, bg: BackgroundOutput) -> CropsOutput:
     c2w = {p.index: p.c2w for p in posed}
     workers = max(1, min(cfg.workers, len(indices) // 20))
     parts = split(indices, workers)
+    windows = np.array([crop_camera(p.c2w, poses.run.intrinsics, sphere.center, sphere.radius, sphere.up,
+                                    cfg.crop_size, cfg.crop_fill).window_px for p in posed])
+    scale = matte_scale(windows, cfg.crop_size, cfg.matte.supersample_between)
+    if scale > 1:
+        ctx.notes.append(f"crops matted at {scale}x ({scale * cfg.crop_size} px) and averaged down: the crop window "
+                         f"spans {np.median(windows) / cfg.crop_size:.1f} source pixels per crop pixel (median)")
 
     def run(fn, tasks, task):
         if workers > 1:
@@ -555,7 +569,7 @@ def crops_stage(ctx: StageContext, bg: BackgroundOutput) -> CropsOutput:
         if workers == 1:
             _MODELS[out / "background" / "field.pt"] = model
         return run(_crop_segment, [_CropSegment(inp.footage, {i: c2w[i] for i in idx}, poses.run.intrinsics, sphere,
-                                                cfg.crop_size, cfg.crop_fill, cfg.matte, out / "background" / "field.pt",
+                                                cfg.crop_size, cfg.crop_fill, cfg.matte, scale, out / "background" / "field.pt",
                                                 scratch, sheet_at) for idx in parts], task)
 
     with progress(transient=True) as prog:
