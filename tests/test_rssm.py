@@ -332,6 +332,35 @@ def test_copy3_composite_copies_the_context_frame_exactly_and_starts_near_it():
         replace_cfg(SMALL, compose="nope").validate()
 
 
+def test_sharpness_match_costs_a_faded_part_not_a_moved_one():
+    # A 4x4 ball on a flat wall: drawn 10 px away it is sharp (no cost here, though squared error
+    # counts it twice); the mean of the places it may be (a fade) costs.
+    wall = torch.full((1, 4, 32, 32), 0.5)
+    def ball(x0):
+        f = wall.clone()
+        f[:, 0, 14:18, x0:x0 + 4] = 1.0
+        return f
+    truth = ball(4)
+    assert rssm.sharpness_match(ball(14), truth).item() == pytest.approx(0.0, abs=1e-9)
+    fade = torch.cat([ball(x0) for x0 in range(4, 24, 2)]).mean(0, keepdim=True)
+    assert rssm.sharpness_match(fade, truth).item() > 0.5
+    assert ((fade - truth) ** 2).sum() < ((ball(14) - truth) ** 2).sum()   # squared error prefers the fade
+    # Descending it sharpens a faded frame.
+    pred = fade.clone().requires_grad_()
+    rssm.sharpness_match(pred, truth).backward()
+    nxt = (pred - 0.05 * pred.grad).detach()
+    assert rssm.sharpness_match(nxt, truth) < rssm.sharpness_match(fade, truth)
+    # In the loss only when asked for (sequence_loss reports it as "sharp").
+    x, v = torch.rand(2, 11, 4, 32, 32), torch.rand(2, 11, 3) * 40
+    assert "sharp" not in rssm.sequence_loss(rssm.Rssm(SMALL), x, v)[1]
+    for compose in ("blend", "accum"):
+        loss, parts = rssm.sequence_loss(rssm.Rssm(replace_cfg(SMALL, compose=compose, sharp_scale=2.0)), x, v)
+        assert parts["sharp"] > 0 and torch.isfinite(loss)
+        loss.backward()
+    with pytest.raises(DbbError, match="sharp_scale"):
+        replace_cfg(SMALL, sharp_scale=-1.0).validate()
+
+
 def test_energy_match_asks_the_open_loop_to_move_as_much_as_the_truth():
     torch.manual_seed(0)
     moving = torch.rand(3, 6, 4, 8, 8)
@@ -545,6 +574,29 @@ def test_accumulated_warp_moves_parts_far_and_resamples_the_image_once():
     assert torch.equal(rssm.accumulated_warp(b64, torch.zeros(1, 2, 64, 64), b64, leak=0.25), b64)
     with pytest.raises(DbbError, match="warp_leak"):
         replace_cfg(SMALL, compose="accum", warp_leak=1.0).validate()
+
+
+def test_warp_leak_per_second_is_rescaled_to_the_footage_frame_rate(crops, tmp_path):
+    # 0.1 a frame at 10 frames/s leaves 0.9 ** 10 of a displacement after one second; at 30 frames/s
+    # the same second takes 30 frames, so the leak per frame is 1 - 0.9 ** (1 / 3) ~ 0.0345.
+    cfg = replace_cfg(SMALL, compose="accum", warp_leak=0.1, warp_leak_fps=10.0)
+    at30 = rssm.leak_at_frame_rate(cfg, 30.0)
+    assert at30.warp_leak == pytest.approx(1.0 - 0.9 ** (1.0 / 3.0)) and at30.warp_leak_fps == 30.0
+    assert (1.0 - at30.warp_leak) ** 30 == pytest.approx(0.9 ** 10)
+    assert rssm.leak_at_frame_rate(at30, 30.0) == at30                 # applying it again changes nothing
+    assert rssm.leak_at_frame_rate(cfg, 10.0).warp_leak == pytest.approx(0.1)
+    plain = replace_cfg(SMALL, compose="accum", warp_leak=0.1)          # the default: a leak per frame
+    assert rssm.leak_at_frame_rate(plain, 30.0) == plain and rssm.leak_at_frame_rate(cfg, None) == cfg
+    with pytest.raises(DbbError, match="warp_leak_fps"):
+        replace_cfg(SMALL, warp_leak_fps=-1.0).validate()
+    # Training builds the model at the dataset's rate: 0.1 a frame at 5 frames/s is 1 - 0.9 ** 0.5 a
+    # frame of the 10-fps fixture.
+    out = tmp_path / "run"
+    rssm.train_run(crops.root, out, replace_cfg(cfg, warp_leak_fps=5.0),
+                   rssm.TrainConfig(steps=1, batch=2, augment="none"), quiet=True)
+    saved = json.loads((out / "run.json").read_text())["model"]["config"]
+    assert saved["warp_leak"] == pytest.approx(1.0 - 0.9 ** 0.5) and saved["warp_leak_fps"] == 10.0
+    assert rssm.load_model(out).decoder.warp_leak == pytest.approx(1.0 - 0.9 ** 0.5)
 
 
 def test_accum_composite_starts_as_the_context_frame_and_steps_from_its_own_warp(tmp_path):
