@@ -447,11 +447,13 @@ def _crop_segment(seg: _CropSegment, tick: Callable[[int], None] | None = None) 
     return _FirstPass(out, counts)
 
 
-def _load_crop(scratch: Path, fm: _FirstMatte) -> tuple[ObjectCrop, np.ndarray | None]:
-    """A first-pass crop back from the scratch folder (no RGBA yet), and its contact-sheet frame."""
+def _load_crop(scratch: Path, fm: _FirstMatte, first_alpha: bool = False) -> tuple[ObjectCrop, np.ndarray | None]:
+    """A first-pass crop back from the scratch folder, and its contact-sheet frame. Its RGBA is
+    empty, or with ``first_alpha`` the observed colour under the first pass's alpha."""
     with np.load(scratch / f"{fm.name}.npz") as z:
         g, inside = z["guessed"], z["inside"]
-        oc = ObjectCrop(fm.cam, z["observed"], z["predicted"], np.zeros(0, np.uint8), fm.touches_border,
+        rgba = np.concatenate([z["observed"], z["alpha"][..., None]], -1) if first_alpha else np.zeros(0, np.uint8)
+        oc = ObjectCrop(fm.cam, z["observed"], z["predicted"], rgba, fm.touches_border,
                         g if g.size else None, inside if inside.size else None, scale=fm.scale)
         return oc, (z["sheet_frame"] if "sheet_frame" in z else None)
 
@@ -505,11 +507,8 @@ def _refine_background(ctx: StageContext, bg: BackgroundOutput, crops: list[_Fir
 
     def rays():
         for fm in crops:
-            oc = _load_crop(scratch, fm)[0]
-            with np.load(scratch / f"{fm.name}.npz") as z:
-                alpha = z["alpha"]
             # at the output size: the rays and the margin are the same whatever the matte's scale
-            oc = at_output(replace(oc, rgba=np.concatenate([oc.observed, alpha[..., None]], -1)))
+            oc = at_output(_load_crop(scratch, fm, first_alpha=True)[0])
             yield room_rays(oc.cam, oc.observed, oc.rgba[..., 3], oc.inside, grow)
 
     task = prog.add_task("train background again on the mattes' room", total=100, info="")
