@@ -146,7 +146,7 @@ def rematte(capture: Path, dataset: Path) -> tuple[Path, Path]:
     import shutil
 
     from dbb_capture.background import BackgroundModel
-    from dbb_capture.crops import at_output, crop_camera, matte_scale, object_crop
+    from dbb_capture.crops import at_output, crop_windows, matte_scale, object_crop
     from dbb_capture.io import open_footage
     from dbb_capture.matte import MatteConfig, sure_object_counts
 
@@ -158,8 +158,8 @@ def rematte(capture: Path, dataset: Path) -> tuple[Path, Path]:
     frames = doc["frames"]
     images = {f.index: f.image for f in open_footage(capture / "video.mp4").read(sorted(fr["source_frame"] for fr in frames))}
     crops, counts = [], None
-    scale = matte_scale(np.array([crop_camera(_estimated_c2w(dataset, fr), intr, center, radius, up, size, fill).window_px
-                                  for fr in frames]), size, cfg.supersample_between)
+    scale = matte_scale(crop_windows([_estimated_c2w(dataset, fr) for fr in frames], intr, center, radius, up, size, fill),
+                        size, cfg.supersample_between)
     for fr in frames:
         oc = object_crop(images[fr["source_frame"]], intr, _estimated_c2w(dataset, fr), center, radius, up, size, fill,
                          model.render, cfg, model.guessed, scale)

@@ -287,6 +287,12 @@ class ObjectCrop:
     scale: int = 1                # the arrays are at ``scale`` x the output size (the matte's; see :func:`at_output`)
 
 
+def crop_windows(c2ws, src: Intrinsics, center: np.ndarray, radius: float, up: np.ndarray, size: int,
+                 fill: float) -> np.ndarray:
+    """:attr:`CropCamera.window_px` (N,) of the crop camera of every frame taken by ``c2ws`` (N of (4, 4))."""
+    return np.array([crop_camera(c, src, center, radius, up, size, fill).window_px for c in c2ws])
+
+
 def matte_scale(windows_px: np.ndarray, size: int, between: tuple[float, float]) -> int:
     """How many times the output size a capture's crops are matted at: 2 where the median crop
     window (``windows_px`` (N,): :attr:`CropCamera.window_px` of every frame) holds between

@@ -38,7 +38,7 @@ from .crops import (
     ObjectCrop,
     alpha_in_frame,
     at_output,
-    crop_camera,
+    crop_windows,
     crops_json,
     follows_previous,
     matte_scale,
@@ -550,8 +550,8 @@ def crops_stage(ctx: StageContext, bg: BackgroundOutput) -> CropsOutput:
     c2w = {p.index: p.c2w for p in posed}
     workers = max(1, min(cfg.workers, len(indices) // 20))
     parts = split(indices, workers)
-    windows = np.array([crop_camera(p.c2w, poses.run.intrinsics, sphere.center, sphere.radius, sphere.up,
-                                    cfg.crop_size, cfg.crop_fill).window_px for p in posed])
+    windows = crop_windows([p.c2w for p in posed], poses.run.intrinsics, sphere.center, sphere.radius, sphere.up,
+                           cfg.crop_size, cfg.crop_fill)
     scale = matte_scale(windows, cfg.crop_size, cfg.matte.supersample_between)
     if scale > 1:
         ctx.notes.append(f"crops matted at {scale}x ({scale * cfg.crop_size} px) and averaged down: the crop window "
