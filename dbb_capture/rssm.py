@@ -99,6 +99,15 @@ class RssmConfig:
     energy_scale: float = 0.0      # weight of the motion-energy match of the open loop (see energy_match)
     sharp_scale: float = 0.0       # weight of the sharpness match of the open loop (see sharpness_match:
                                    # a moving part must be drawn as sharp as the truth's, wherever it is)
+    sharp_where: str = "all"       # where the sharpness match looks: "all" = the whole frame; "moving" =
+                                   # only where the window's truth changes (motion_envelope), so a fixed
+                                   # texture does not dominate it and no stripes are drawn to match it
+    open_loop_temperature: float = 1.0  # training only: scale of the prior's std in the open-loop samples
+                                   # (1 = as the run-time stepper at temperature 1)
+    pyramid_scale: float = 0.0     # weight of the coarse-scale squared error of the filtering and open-loop
+                                   # frames (pyramid_err): a warp's gradient reaches only a pixel or two, so a
+                                   # part predicted far from the truth gets no pull toward it at full size
+    pyramid_levels: int = 3        # halvings in that term (3: 1/2, 1/4, 1/8 of the size)
     prior_first: bool = True       # also decode frame 1 from a prior sample at h_1 (the run-time first step)
     open_loop_from: int = 1        # the training open loop starts from the filtering state of this frame:
                                    # 1 = after the posterior has seen frames 0 and 1 (see sequence_loss)
@@ -145,6 +154,12 @@ class RssmConfig:
             raise DbbError(f"RSSM decoder_view must be absolute, relative or both, not {self.decoder_view!r}")
         if self.sharp_scale < 0.0:
             raise DbbError(f"RSSM sharp_scale must be >= 0, not {self.sharp_scale}")
+        if self.sharp_where not in ("all", "moving"):
+            raise DbbError(f"RSSM sharp_where must be all or moving, not {self.sharp_where!r}")
+        if self.pyramid_scale < 0.0 or self.pyramid_levels < 1:
+            raise DbbError(f"RSSM pyramid_scale must be >= 0 and pyramid_levels >= 1, not {self.pyramid_scale}, {self.pyramid_levels}")
+        if self.open_loop_temperature < 0.0:
+            raise DbbError(f"RSSM open_loop_temperature must be >= 0, not {self.open_loop_temperature}")
         if self.open_loop_samples < 1:
             raise DbbError("RSSM open_loop_samples must be at least 1")
 
@@ -648,7 +663,18 @@ def energy_match(pred: torch.Tensor, truth: torch.Tensor, eps: float = 1e-3) -> 
     return ((torch.log(e_p + eps) - torch.log(e_t + eps)) ** 2).mean()
 
 
-def sharpness_match(pred: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
+def motion_envelope(x: torch.Tensor, grow: int = 2) -> torch.Tensor:
+    """Where each window's truth moves, (B, 1, S, S) in [0, 1], from premultiplied frames ``x``
+    (B, T, 4, S, S), T >= 2: the largest channel change between consecutive frames over the
+    window, grown by ``grow`` pixels (max pooling) and divided by the window's largest (0 where
+    nothing changes). Any frame rate, any footage: no threshold."""
+    d = (x[:, 1:] - x[:, :-1]).abs().amax(2).amax(1, keepdim=True)           # (B, 1, S, S)
+    if grow > 0:
+        d = F.max_pool2d(d, 2 * grow + 1, 1, grow)
+    return d / d.flatten(1).amax(1).clamp(min=1e-6)[:, None, None, None]
+
+
+def sharpness_match(pred: torch.Tensor, truth: torch.Tensor, where: torch.Tensor | None = None) -> torch.Tensor:
     """Squared distance between the distributions of the pixel-to-pixel differences (horizontal and
     vertical, per channel) of each frame, summed over them, mean over frames: ``pred``, ``truth``
     (N, C, S, S), each frame's differences sorted and compared rank by rank (the 1-D Wasserstein-2
@@ -660,11 +686,52 @@ def sharpness_match(pred: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
     faded or smeared; with this term beside it a sharp part in one place may cost less. (On the
     pendulum footage a frame with the ball 5-6 frames away scores 0.03-0.12 here, the mean of 13
     frames 0.25-0.45; a global value histogram told them apart less well, exposure flicker moves it.)
+
+    ``where`` (N, 1, S, S) in [0, 1] (e.g. :func:`motion_envelope`): each difference is weighted by
+    it (the mean of its two pixels') before sorting, so only the parts of the frame it covers are
+    compared, still blind to where in them an edge is.
     """
     def diffs(x: torch.Tensor) -> torch.Tensor:
-        return torch.cat([(x[..., 1:, :] - x[..., :-1, :]).flatten(2), (x[..., :, 1:] - x[..., :, :-1]).flatten(2)], 2)
+        dv, dh = x[..., 1:, :] - x[..., :-1, :], x[..., :, 1:] - x[..., :, :-1]
+        if where is not None:
+            dv = dv * (0.5 * (where[..., 1:, :] + where[..., :-1, :]))
+            dh = dh * (0.5 * (where[..., :, 1:] + where[..., :, :-1]))
+        return torch.cat([dv.flatten(2), dh.flatten(2)], 2)
 
     return ((diffs(pred).sort(-1).values - diffs(truth).sort(-1).values) ** 2).flatten(1).sum(1).mean()
+
+
+def _gauss_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
+    """``x`` (N, C, H, W) blurred by a Gaussian of ``sigma`` pixels (separable, edges replicated)."""
+    r = max(1, int(math.ceil(3.0 * sigma)))
+    k = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=x.dtype, device=x.device) / sigma) ** 2)
+    k = k / k.sum()
+    c = x.shape[1]
+    x = F.conv2d(F.pad(x, (r, r, 0, 0), mode="replicate"), k.view(1, 1, 1, -1).expand(c, 1, 1, -1), groups=c)
+    return F.conv2d(F.pad(x, (0, 0, r, r), mode="replicate"), k.view(1, 1, -1, 1).expand(c, 1, -1, 1), groups=c)
+
+
+def pyramid_err(pred: torch.Tensor, truth: torch.Tensor, levels: int) -> torch.Tensor:
+    """Squared error of ``pred`` and ``truth`` (N, C, S, S) blurred at ``levels`` scales (level l:
+    averaged down by 2 ** (l - 1), then a Gaussian of 2 pixels there, i.e. ~2 ** l pixels of the
+    frame), each level's pixel counted for the pixels it covers, summed over levels and pixels,
+    mean over frames.
+
+    Through a warp (grid_sample) a pixel's error moves the flow only where the context frame has
+    an edge within a pixel of the sampling point: a small part predicted several pixels from where
+    the truth has it gets no gradient toward it at full size, only to fade it. Blurred, the two
+    overlap again and the flow is pulled toward the truth (coarse to fine, as flow estimators'
+    multi-scale losses); a level of 2 ** l pixels reaches ~2 ** (l + 1).
+    """
+    total = pred.new_zeros(())
+    for level in range(1, levels + 1):
+        k = 2 ** (level - 1)
+        if 4 * k > pred.shape[-1]:
+            break
+        a, b = (F.avg_pool2d(pred, k), F.avg_pool2d(truth, k)) if k > 1 else (pred, truth)
+        d = _gauss_blur(a - b, 2.0)
+        total = total + (d * d).flatten(1).sum(1).mean() * (k * k)
+    return total
 
 
 def best_of(err: torch.Tensor, k: int, b: int) -> torch.Tensor:
@@ -748,13 +815,15 @@ def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[to
         f2, _ = chain(H[:, k + 1:], Zd[:, k + 1:], k + 1, T1, g_k)
         ti = torch.arange(1, T1, device=x.device)
         fr = torch.cat([f1, f2], 1).flatten(0, 1)
-        rec = _rec_loss(fr, x[:, 1:].flatten(0, 1), with_predicted_change(
+        fr_truth = x[:, 1:].flatten(0, 1)
+        rec = _rec_loss(fr, fr_truth, with_predicted_change(
             None if w is None else w[:, 1:].flatten(0, 1), fr, x[:, :-1].flatten(0, 1), cfg.motion_weight,
             cfg.motion_weight_of))
     else:
         ti = _decoded(T1, cfg.decode_frames + 1, 0, x.device)
         fr = decode(torch.stack(hs, 1)[:, ti], torch.stack(zd, 1)[:, ti], ti)
-        rec = _rec_loss(fr, x[:, ti].flatten(0, 1), with_predicted_change(
+        fr_truth = x[:, ti].flatten(0, 1)
+        rec = _rec_loss(fr, fr_truth, with_predicted_change(
             None if w is None else w[:, ti].flatten(0, 1), fr, x[:, (ti - 1).clamp(min=0)].flatten(0, 1),
             cfg.motion_weight, cfg.motion_weight_of))
     # Open loop, the way it runs: prior samples only, from the filtering state of frame k.
@@ -768,7 +837,7 @@ def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[to
     for t in range(k + 1, T1):
         ho = model.transition(ho, zo)
         pm, ps = model.prior_stats(ho)
-        zo = pm + ps * torch.randn_like(ps)
+        zo = pm + cfg.open_loop_temperature * ps * torch.randn_like(ps)
         ol_h.append(ho)
         ol_z.append(zo)
         over.append(_kl(post_m[t].detach().repeat(K, 1), post_s[t].detach().repeat(K, 1), pm, ps).mean())
@@ -781,7 +850,7 @@ def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[to
         # frame k >= 1 never decodes it; untrained, it drew a random motion and lost ~3 dB to copying).
         h1 = hs[1].repeat(K, 1)
         pm1, ps1 = model.prior_stats(h1)
-        z1 = pm1 + ps1 * torch.randn_like(ps1)
+        z1 = pm1 + cfg.open_loop_temperature * ps1 * torch.randn_like(ps1)
         if accum:                                        # from the identity warp, as at run time
             first, _ = chain(h1[:, None], z1[:, None], 1, 2, model.decoder.grid.expand(K * B, -1, -1, -1), K)
         else:
@@ -800,9 +869,16 @@ def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[to
     parts = {"loss": loss.item(), "rec": rec.item(), "open_loop": ol.item(), "kl_dyn": dyn.item(),
              "kl_rep": torch.stack(kl_rep).mean().item(), "overshoot": overshoot.item()}
     if cfg.sharp_scale > 0:
-        sh = sharpness_match(ol_x, copies(x))
+        env = None
+        if cfg.sharp_where == "moving":                  # each frame's window's envelope, as copies() lays them out
+            env = motion_envelope(x)[:, None].expand(-1, len(di), -1, -1, -1).flatten(0, 1).repeat(K, 1, 1, 1)
+        sh = sharpness_match(ol_x, copies(x), env)
         loss = loss + cfg.sharp_scale * sh
         parts["loss"], parts["sharp"] = loss.item(), sh.item()
+    if cfg.pyramid_scale > 0:                            # every copy, not only the best (best_of)
+        py = pyramid_err(fr, fr_truth, cfg.pyramid_levels) + pyramid_err(ol_x, copies(x), cfg.pyramid_levels)
+        loss = loss + cfg.pyramid_scale * py
+        parts["loss"], parts["pyramid"] = loss.item(), py.item()
     if cfg.energy_scale > 0 and len(oi) > 1 and int(oi[-1] - oi[0]) == len(oi) - 1:   # consecutive frames only
         en = energy_match(ol_x[:B * len(di)].view(B, len(di), *x.shape[2:])[:, n0:], x[:, oi])
         loss = loss + cfg.energy_scale * en

@@ -361,6 +361,114 @@ def test_sharpness_match_costs_a_faded_part_not_a_moved_one():
         replace_cfg(SMALL, sharp_scale=-1.0).validate()
 
 
+def test_sharpness_match_on_moving_pixels_ignores_the_fixed_texture():
+    # A striped wall (fixed texture) and a ball that moves across it: matched over the whole frame a
+    # prediction whose wall texture is blurred costs, though it draws the ball sharp; restricted to
+    # where the truth moves (sharp_where="moving") only the ball's region counts.
+    torch.manual_seed(0)
+    wall = torch.full((1, 1, 4, 32, 32), 0.5)
+    wall[..., 24:, ::2] = 0.2                           # stripes where nothing moves
+    def frame(x0, w=wall):
+        f = w.clone()
+        f[..., 2:6, x0:x0 + 4] = 1.0
+        return f
+    truth = torch.cat([frame(4), frame(8), frame(12)], 1)          # (1, 3, 4, 32, 32)
+    env = rssm.motion_envelope(truth)
+    assert env.shape == (1, 1, 32, 32) and env.max().item() == pytest.approx(1.0)
+    assert env[..., 24:, :].abs().max().item() == 0.0 and env[..., 2:6, 4:16].min().item() > 0.5
+    flat = wall.clone()
+    flat[..., 24:, :] = 0.35                            # the stripes averaged away
+    pred = frame(10, flat)[:, 0]                        # the ball sharp (elsewhere), the wall blurred
+    t = truth[:, 2]
+    assert rssm.sharpness_match(pred, t).item() > 1.0
+    assert rssm.sharpness_match(pred, t, env).item() == pytest.approx(0.0, abs=1e-6)
+    fade = torch.stack([frame(x0)[:, 0] for x0 in (4, 8, 12)]).mean(0)    # the ball faded: still costs
+    assert rssm.sharpness_match(fade, t, env).item() > 0.1
+    # In the loss: "moving" gives a different (smaller, here) term than "all"; bad values refused.
+    x, v = torch.rand(2, 11, 4, 32, 32) * 0.2, torch.rand(2, 11, 3) * 40
+    x[:, :, :, 4:8] = torch.rand(2, 11, 4, 4, 32)        # only these rows change much
+    parts = {}
+    for where in ("all", "moving"):
+        torch.manual_seed(1)
+        m = rssm.Rssm(replace_cfg(SMALL, compose="accum", sharp_scale=1.0, sharp_where=where))
+        loss, parts[where] = rssm.sequence_loss(m, x, v)
+        assert torch.isfinite(loss)
+    assert 0 < parts["moving"]["sharp"] < parts["all"]["sharp"]
+    with pytest.raises(DbbError, match="sharp_where"):
+        replace_cfg(SMALL, sharp_where="edges").validate()
+
+
+def test_pyramid_err_pulls_a_far_warp_toward_the_truth():
+    # A 4x4 ball warped sideways (backward flow) toward a truth 14 px away: at full size the error
+    # is flat until the two overlap (no gradient for the flow); blurred at coarser scales it falls
+    # all the way, and its gradient points the flow toward the truth.
+    S = 64
+    ctx = torch.full((1, 4, S, S), 0.5)
+    ctx[:, 0, 30:34, 30:34] = 1.0
+    truth = torch.full((1, 4, S, S), 0.5)
+    truth[:, 0, 30:34, 44:48] = 1.0
+    grid = rssm.identity_grid(1, S)
+    region = torch.zeros(1, S, S, 1)
+    region[:, 20:44, 12:60] = 1.0
+
+    def warped(px):
+        flow = region * torch.stack([px * 2.0 / S, torch.zeros(())])
+        return torch.nn.functional.grid_sample(ctx, grid + flow, align_corners=False, padding_mode="border")
+
+    shifts = [-0.5 - i for i in range(13)]
+    full = [((warped(torch.tensor(p)) - truth) ** 2).sum().item() for p in shifts]
+    pyr = [rssm.pyramid_err(warped(torch.tensor(p)), truth, 3).item() for p in shifts]
+    assert max(full[:9]) - min(full[:9]) < 1e-4                  # no overlap: flat at full size
+    assert all(b < a for a, b in zip(pyr, pyr[1:]))              # coarse: falls at every step
+    px = torch.tensor(-3.5, requires_grad=True)
+    rssm.pyramid_err(warped(px), truth, 3).backward()
+    assert px.grad.item() > 0                                    # descending moves the ball right
+    assert rssm.pyramid_err(truth, truth, 3).item() == 0.0
+    # In the loss only when asked for, every compose; bad values refused.
+    x, v = torch.rand(2, 11, 4, 32, 32), torch.rand(2, 11, 3) * 40
+    assert "pyramid" not in rssm.sequence_loss(rssm.Rssm(SMALL), x, v)[1]
+    for compose in ("blend", "accum"):
+        loss, parts = rssm.sequence_loss(rssm.Rssm(replace_cfg(SMALL, compose=compose, pyramid_scale=1.0)), x, v)
+        assert parts["pyramid"] > 0 and torch.isfinite(loss)
+    with pytest.raises(DbbError, match="pyramid"):
+        replace_cfg(SMALL, pyramid_levels=0).validate()
+
+
+def test_open_loop_temperature_scales_the_training_samples_only(monkeypatch):
+    # The open loop's prior samples are mean + temperature * std * noise; 0 gives the mean.
+    torch.manual_seed(0)
+    x, v = torch.rand(2, 11, 4, 32, 32), torch.rand(2, 11, 3) * 40
+    seen = []
+    real = rssm.Rssm.prior_stats
+    def spy(self, h):
+        m, s = real(self, h)
+        seen.append((m, s))
+        return m, s
+    monkeypatch.setattr(rssm.Rssm, "prior_stats", spy)
+    drawn = []
+    real_chain = rssm.Rssm.decode_chain
+    def chain(self, h, z, *a):
+        drawn.append(z.detach())
+        return real_chain(self, h, z, *a)
+    monkeypatch.setattr(rssm.Rssm, "decode_chain", chain)
+    spread = {}
+    for temp in (0.0, 1.0, 3.0):
+        seen.clear(); drawn.clear()
+        torch.manual_seed(2)
+        m = rssm.Rssm(replace_cfg(SMALL, compose="accum", open_loop_temperature=temp))
+        loss, _ = rssm.sequence_loss(m, x, v)
+        assert torch.isfinite(loss)
+        # The last chain is the open loop (frames 2..10); its z against the prior means seen last.
+        z = drawn[-1]
+        means = torch.stack([mm for mm, _ in seen[-(z.shape[1] + 1):-1]], 1)
+        stds = torch.stack([ss for _, ss in seen[-(z.shape[1] + 1):-1]], 1)
+        spread[temp] = ((z - means) / stds).pow(2).mean().sqrt().item()
+    assert spread[0.0] == pytest.approx(0.0, abs=1e-5)
+    assert 0.7 < spread[1.0] < 1.3 and 2.2 < spread[3.0] < 3.8
+    with pytest.raises(DbbError, match="open_loop_temperature"):
+        replace_cfg(SMALL, open_loop_temperature=-1.0).validate()
+
+
 def test_energy_match_asks_the_open_loop_to_move_as_much_as_the_truth():
     torch.manual_seed(0)
     moving = torch.rand(3, 6, 4, 8, 8)
