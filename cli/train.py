@@ -45,11 +45,15 @@ def main() -> None:
 @click.option("--carve", "carve_share", type=click.FloatRange(0, 1), default=None,
               help="Leave out space that at least this share of the views that see it see as clearly empty "
                    "(0: off; default 0.1 on preprocess crops, else off).")
+@click.option("--observed/--no-observed", "observed_loss", default=None,
+              help="Preprocess crops: render over the predicted room and compare with the observed pixel where "
+                   "its colour decides (the matte elsewhere), so a part a matte missed is kept by the views "
+                   "that see it (default on for preprocess crops; other datasets have no observed pixels).")
 @click.option("--threads", type=click.IntRange(1, 256), default=None,
               help="CPU threads (default: torch's choice; on a machine shared with other jobs 1 is faster).")
 def plenoctree(dataset, out, minutes, steps, downscale, resume, overwrite, mode, sh_degree, res_max,
                max_points, depth, prune_weight, holdout_every, holdout_names, batch_rays, robust_from, carve_share,
-               threads) -> None:
+               observed_loss, threads) -> None:
     """Static object: train a voxel radiance field on DATASET and bake it into a PlenOctree.
 
     DATASET is a preprocess output (crops.json) or a nerfstudio / instant-ngp / Blender
@@ -66,7 +70,8 @@ def plenoctree(dataset, out, minutes, steps, downscale, resume, overwrite, mode,
     names = tuple(n.strip() for n in holdout_names.split(",") if n.strip())
     cfg = RunConfig(minutes, steps, downscale, mode, holdout_every, names, depth, prune_weight)
     fcfg = FieldConfig(sh_degree=sh_degree, res_max=res_max, max_points=max_points, batch_rays=batch_rays,
-                       res_start=min(32, res_max), robust_from=robust_from, carve_share=carve_share)
+                       res_start=min(32, res_max), robust_from=robust_from, carve_share=carve_share,
+                       observed_loss=observed_loss)
     run = train_run(dataset, out, cfg, fcfg, resume=resume, overwrite=overwrite)
     m = run.meta
     mp = m["metrics"].get("mean_psnr_tree_white")
@@ -85,6 +90,10 @@ def plenoctree(dataset, out, minutes, steps, downscale, resume, overwrite, mode,
 @click.option("--size", type=click.Choice(["32", "64", "128", "256"]), default="64", show_default=True,
               help="Frame side in pixels (crops are resized to it).")
 @click.option("--batch", type=click.IntRange(1, 512), default=8, show_default=True, help="Sequences per step.")
+@click.option("--observed/--no-observed", "observed_loss", default=None,
+              help="Preprocess crops: render over the predicted room and compare with the observed pixel where "
+                   "its colour decides (the matte elsewhere), so a part a matte missed is kept by the views "
+                   "that see it (default on for preprocess crops; other datasets have no observed pixels).")
 @click.option("--threads", type=click.IntRange(1, 256), default=None,
               help="CPU threads for torch (default: torch's choice).")
 @click.option("--seed", type=int, default=0, show_default=True)

@@ -101,16 +101,21 @@ class FieldConfig:
     # so alpha comes from multi-view consistency instead of from the matte. The matte (random
     # background, as for other datasets) stays a prior on a share ``matte_prior`` of the rays
     # where the observed colour is within ``decisive_diff`` (max over RGB, [0, 1]) of the room's,
-    # fading out linearly up to that difference. False: the matte alone. Off by default: on the
-    # synthetic static capture it halved the error around the object but left the object more
-    # see-through in views past the training path (docs/benchmarks.md, issue 4, fourth session).
-    observed_loss: bool = False
+    # fading out linearly up to that difference. False: the matte alone; None: by the dataset's
+    # kind (:meth:`for_dataset`: on for preprocess crops). A table-coloured part that a view's
+    # matte misses renders like the room there and costs nothing in that view, while the views
+    # that see it against another colour keep it (docs/benchmarks.md, issue 4, seventh session:
+    # +1.1 dB on white at 2000 steps on the 640x480 capture, -0.1 at 1920x1440).
+    observed_loss: bool | None = None
     matte_prior: float = 0.5
-    decisive_diff: float = 0.1
-    # ... and where the matte is sure of the object (alpha at least this) it decides: over one
+    decisive_diff: float = 0.6
+    # ... and where the matte sees any of the object (alpha at least this) it decides: over one
     # room per ray, colour and alpha trade off (a * c + (1 - a) * B fits many pairs), which left
-    # the object see-through from new angles. Above 1: never.
-    matte_opaque: float = 0.99
+    # the object see-through from new angles (at 0.99), and at the outline the observed colour
+    # carries the footage's blur, which widened the outline (at 0.99: -0.8 dB on white at
+    # 1920x1440; at 0.02: -0.1). So the observed pixels speak where the matte says "room":
+    # against its misses. Above 1: never.
+    matte_opaque: float = 0.02
     # Robust training (iteratively reweighted least squares, as RobustNeRF / NeRF-W let views
     # outvote their outliers): from this fraction of the budget on, each ray's squared error is
     # weighted by ``1 / (1 + e / robust_scale^2)``, ``e`` the running mean of that ray's own
@@ -134,13 +139,15 @@ class FieldConfig:
     seed: int = 0
 
     def for_dataset(self, kind: str) -> "FieldConfig":
-        """Settings left to the dataset (None) decided by its ``kind``: carving (0.1) and robust
-        training (from half the budget) for preprocess crops ("crops"), whose mattes carry errors
-        that the views outvote (docs/benchmarks.md, issue 4: +0.7 dB at 2000 steps on the 640x480
-        sample); off where the alpha is the truth or absent (Blender, nerfstudio, instant-ngp)."""
+        """Settings left to the dataset (None) decided by its ``kind``: carving (0.1), robust
+        training (from half the budget) and the observed loss for preprocess crops ("crops"),
+        whose mattes carry errors that the views outvote (docs/benchmarks.md, issue 4: +0.7 dB
+        at 2000 steps on the 640x480 sample for the first two); off where the alpha is the truth
+        or absent (Blender, nerfstudio, instant-ngp)."""
         crops = kind == "crops"
-        return replace(self, robust_from=(0.5 if crops else 1.0) if self.robust_from is None else self.robust_from,
-                       carve_share=(0.1 if crops else 0.0) if self.carve_share is None else self.carve_share)
+        pick = lambda v, on, off: (on if crops else off) if v is None else v
+        return replace(self, robust_from=pick(self.robust_from, 0.5, 1.0), carve_share=pick(self.carve_share, 0.1, 0.0),
+                       observed_loss=pick(self.observed_loss, True, False))
 
     @property
     def n_basis(self) -> int:

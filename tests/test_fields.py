@@ -262,10 +262,10 @@ def test_observed_pixels_over_the_predicted_room_correct_a_bad_matte(tmp_path):
     matte_only = see_through(TINY)
     observed = see_through(replace(TINY, observed_loss=True))
     assert matte_only > 0.1 and observed < 0.5 * matte_only, (matte_only, observed)
-    # Rays pick their target: the observed pixel over the room where colour decides, the matte
-    # (over a random colour) where it cannot, with probability matte_prior; NaN or a matte sure
-    # of the object (alpha >= matte_opaque): the matte.
-    rgba = torch.tensor([[0.9, 0.1, 0.1, 0.6]] * 3 + [[0.9, 0.1, 0.1, 1.0]])
+    # Rays where the matte says "room" pick their target: the observed pixel over the room where
+    # colour decides, the matte (over a random colour) where it cannot, with probability
+    # matte_prior; NaN or a matte that sees any object (alpha >= matte_opaque): the matte.
+    rgba = torch.tensor([[0.9, 0.1, 0.1, 0.0]] * 3 + [[0.9, 0.1, 0.1, 0.6]])
     bg = torch.full((4, 3), 0.5)
     seen = torch.tensor([[0.9, 0.1, 0.1], [0.3, 0.3, 0.3], [float("nan")] * 3, [0.9, 0.1, 0.1]])
     room = torch.tensor([[0.2, 0.2, 0.2], [0.3, 0.3, 0.3], [0.2, 0.2, 0.2], [0.2, 0.2, 0.2]])
@@ -368,12 +368,12 @@ def test_carving_keeps_the_object_and_clears_what_the_views_see_through(tmp_path
 
 
 def test_matte_treatments_follow_the_dataset_kind_unless_set():
-    """Preprocess crops get carving and robust training; datasets whose alpha is the truth do
-    not; a value given explicitly (even "off") is kept."""
+    """Preprocess crops get carving, robust training and the observed loss; datasets whose alpha
+    is the truth do not; a value given explicitly (even "off") is kept."""
     crops = FieldConfig().for_dataset("crops")
-    assert (crops.carve_share, crops.robust_from) == (0.1, 0.5)
+    assert (crops.carve_share, crops.robust_from, crops.observed_loss) == (0.1, 0.5, True)
     for kind in ("blender", "transforms"):
         other = FieldConfig().for_dataset(kind)
-        assert (other.carve_share, other.robust_from) == (0.0, 1.0)
-    kept = FieldConfig(carve_share=0.0, robust_from=1.0).for_dataset("crops")
-    assert (kept.carve_share, kept.robust_from) == (0.0, 1.0)
+        assert (other.carve_share, other.robust_from, other.observed_loss) == (0.0, 1.0, False)
+    kept = FieldConfig(carve_share=0.0, robust_from=1.0, observed_loss=False).for_dataset("crops")
+    assert (kept.carve_share, kept.robust_from, kept.observed_loss) == (0.0, 1.0, False)
