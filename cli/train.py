@@ -90,10 +90,6 @@ def plenoctree(dataset, out, minutes, steps, downscale, resume, overwrite, mode,
 @click.option("--size", type=click.Choice(["32", "64", "128", "256"]), default="64", show_default=True,
               help="Frame side in pixels (crops are resized to it).")
 @click.option("--batch", type=click.IntRange(1, 512), default=8, show_default=True, help="Sequences per step.")
-@click.option("--observed/--no-observed", "observed_loss", default=None,
-              help="Preprocess crops: render over the predicted room and compare with the observed pixel where "
-                   "its colour decides (the matte elsewhere), so a part a matte missed is kept by the views "
-                   "that see it (default on for preprocess crops; other datasets have no observed pixels).")
 @click.option("--threads", type=click.IntRange(1, 256), default=None,
               help="CPU threads for torch (default: torch's choice).")
 @click.option("--seed", type=int, default=0, show_default=True)
