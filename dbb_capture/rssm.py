@@ -701,16 +701,6 @@ def sharpness_match(pred: torch.Tensor, truth: torch.Tensor, where: torch.Tensor
     return ((diffs(pred).sort(-1).values - diffs(truth).sort(-1).values) ** 2).flatten(1).sum(1).mean()
 
 
-def _gauss_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
-    """``x`` (N, C, H, W) blurred by a Gaussian of ``sigma`` pixels (separable, edges replicated)."""
-    r = max(1, int(math.ceil(3.0 * sigma)))
-    k = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=x.dtype, device=x.device) / sigma) ** 2)
-    k = k / k.sum()
-    c = x.shape[1]
-    x = F.conv2d(F.pad(x, (r, r, 0, 0), mode="replicate"), k.view(1, 1, 1, -1).expand(c, 1, 1, -1), groups=c)
-    return F.conv2d(F.pad(x, (0, 0, r, r), mode="replicate"), k.view(1, 1, -1, 1).expand(c, 1, -1, 1), groups=c)
-
-
 def pyramid_err(pred: torch.Tensor, truth: torch.Tensor, levels: int) -> torch.Tensor:
     """Squared error of ``pred`` and ``truth`` (N, C, S, S) blurred at ``levels`` scales (level l:
     averaged down by 2 ** (l - 1), then a Gaussian of 2 pixels there, i.e. ~2 ** l pixels of the
@@ -723,13 +713,16 @@ def pyramid_err(pred: torch.Tensor, truth: torch.Tensor, levels: int) -> torch.T
     overlap again and the flow is pulled toward the truth (coarse to fine, as flow estimators'
     multi-scale losses); a level of 2 ** l pixels reaches ~2 ** (l + 1).
     """
+    from kornia.filters import gaussian_blur2d     # training only: the run-time stepper does not need it
+
     total = pred.new_zeros(())
     for level in range(1, levels + 1):
         k = 2 ** (level - 1)
         if 4 * k > pred.shape[-1]:
             break
         a, b = (F.avg_pool2d(pred, k), F.avg_pool2d(truth, k)) if k > 1 else (pred, truth)
-        d = _gauss_blur(a - b, 2.0)
+        # kornia's separable Gaussian (std 2 px, 3 std each side, edges replicated)
+        d = gaussian_blur2d(a - b, (13, 13), (2.0, 2.0), border_type="replicate")
         total = total + (d * d).flatten(1).sum(1).mean() * (k * k)
     return total
 
