@@ -108,6 +108,9 @@ class RssmConfig:
                                    # frames (pyramid_err): a warp's gradient reaches only a pixel or two, so a
                                    # part predicted far from the truth gets no pull toward it at full size
     pyramid_levels: int = 3        # halvings in that term (3: 1/2, 1/4, 1/8 of the size)
+    pyramid_on: str = "both"       # which frames that term scores: "both", "filter" (the filtering frames
+                                   # only: the flow gets its reach from the posterior, and the open loop is
+                                   # not asked to meet a blurred truth) or "open_loop"
     prior_first: bool = True       # also decode frame 1 from a prior sample at h_1 (the run-time first step)
     open_loop_from: int = 1        # the training open loop starts from the filtering state of this frame:
                                    # 1 = after the posterior has seen frames 0 and 1 (see sequence_loss)
@@ -158,6 +161,8 @@ class RssmConfig:
             raise DbbError(f"RSSM sharp_where must be all or moving, not {self.sharp_where!r}")
         if self.pyramid_scale < 0.0 or self.pyramid_levels < 1:
             raise DbbError(f"RSSM pyramid_scale must be >= 0 and pyramid_levels >= 1, not {self.pyramid_scale}, {self.pyramid_levels}")
+        if self.pyramid_on not in ("both", "filter", "open_loop"):
+            raise DbbError(f"RSSM pyramid_on must be both, filter or open_loop, not {self.pyramid_on!r}")
         if self.open_loop_temperature < 0.0:
             raise DbbError(f"RSSM open_loop_temperature must be >= 0, not {self.open_loop_temperature}")
         if self.open_loop_samples < 1:
@@ -869,7 +874,11 @@ def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[to
         loss = loss + cfg.sharp_scale * sh
         parts["loss"], parts["sharp"] = loss.item(), sh.item()
     if cfg.pyramid_scale > 0:                            # every copy, not only the best (best_of)
-        py = pyramid_err(fr, fr_truth, cfg.pyramid_levels) + pyramid_err(ol_x, copies(x), cfg.pyramid_levels)
+        py = loss.new_zeros(())
+        if cfg.pyramid_on in ("both", "filter"):
+            py = py + pyramid_err(fr, fr_truth, cfg.pyramid_levels)
+        if cfg.pyramid_on in ("both", "open_loop"):
+            py = py + pyramid_err(ol_x, copies(x), cfg.pyramid_levels)
         loss = loss + cfg.pyramid_scale * py
         parts["loss"], parts["pyramid"] = loss.item(), py.item()
     if cfg.energy_scale > 0 and len(oi) > 1 and int(oi[-1] - oi[0]) == len(oi) - 1:   # consecutive frames only

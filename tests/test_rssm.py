@@ -434,6 +434,32 @@ def test_pyramid_err_pulls_a_far_warp_toward_the_truth():
         replace_cfg(SMALL, pyramid_levels=0).validate()
 
 
+def test_pyramid_on_scores_the_filtering_or_the_open_loop_frames_only(monkeypatch):
+    # pyramid_on picks which decoded frames the coarse-scale error sees: "filter" the filtering
+    # frames (those of the reconstruction loss), "open_loop" the sampled open loop, "both" both.
+    x, v = torch.rand(2, 11, 4, 32, 32), torch.rand(2, 11, 3) * 40
+    rec_preds, pyr_preds = [], []
+    real_rec, real_pyr = rssm._rec_loss, rssm.pyramid_err
+    monkeypatch.setattr(rssm, "_rec_loss", lambda pred, *a: rec_preds.append(pred) or real_rec(pred, *a))
+    monkeypatch.setattr(rssm, "pyramid_err", lambda pred, *a: pyr_preds.append(pred) or real_pyr(pred, *a))
+    for compose in ("blend", "accum"):
+        seen = {}
+        for on in ("both", "filter", "open_loop"):
+            rec_preds.clear(); pyr_preds.clear()
+            torch.manual_seed(0)
+            m = rssm.Rssm(replace_cfg(SMALL, compose=compose, pyramid_scale=1.0, pyramid_on=on))
+            loss, parts = rssm.sequence_loss(m, x, v)
+            assert torch.isfinite(loss) and parts["pyramid"] > 0
+            filt = [p is rec_preds[0] for p in pyr_preds]
+            seen[on] = (filt, parts["pyramid"])
+        assert seen["both"][0] == [True, False]
+        assert seen["filter"][0] == [True] and seen["open_loop"][0] == [False]
+        # Same seed, same frames: the two parts add up to the whole.
+        assert seen["filter"][1] + seen["open_loop"][1] == pytest.approx(seen["both"][1], rel=1e-4)
+    with pytest.raises(DbbError, match="pyramid_on"):
+        replace_cfg(SMALL, pyramid_on="posterior").validate()
+
+
 def test_open_loop_temperature_scales_the_training_samples_only(monkeypatch):
     # The open loop's prior samples are mean + temperature * std * noise; 0 gives the mean.
     torch.manual_seed(0)
