@@ -341,9 +341,9 @@ def score_crops(dataset: Path, capture: Path, every: int = 8) -> dict:
     return out
 
 
-def bench_capture(dataset: Path, capture: Path, run_dir: Path, minutes: float | None, res_max: int,
+def bench_capture(dataset: Path, capture: Path, run_dir: Path, minutes: float | None, res_max: int | None,
                   train: bool, field: dict | None = None, steps: int | None = None, truth: Path | None = None,
-                  holdout_every: int = 0, prune_weight: float | None = None) -> dict:
+                  holdout_every: int = 0, prune_weight: float | None = None, depth: int | None = None) -> dict:
     """Train on a preprocess dataset of a synthetic capture (crops.json) and score the tree on
     the held-out crops (the dataset's test split) against the capture's ground truth: the
     object alone rendered through each crop camera at its time, on black and on white. Also
@@ -353,7 +353,8 @@ def bench_capture(dataset: Path, capture: Path, run_dir: Path, minutes: float | 
     steps instead of (or besides) ``minutes``; ``truth``: train instead on the crops re-made
     from the ground truth in this folder (:func:`truth_crops`), the ceiling of perfect mattes;
     ``holdout_every``: hold out every n-th crop instead of the dataset's split (:func:`resplit_crops`);
-    ``prune_weight``: the bake's weight pruning (None: the default)."""
+    ``prune_weight``: the bake's weight pruning (None: the default); ``depth``: the octree's
+    (None: matching the lattice)."""
     from dbb_capture.fields import FieldConfig
     from dbb_capture.synth import load_ground_truth, render_object_rgba
 
@@ -361,8 +362,8 @@ def bench_capture(dataset: Path, capture: Path, run_dir: Path, minutes: float | 
         dataset = resplit_crops(dataset, run_dir.parent / f"{run_dir.name}.split{holdout_every}", holdout_every)
     data = truth_crops(dataset, capture, truth) if truth is not None else dataset
     if train:
-        fc = FieldConfig(**({"res_max": res_max, "res_start": min(32, res_max)} | (field or {})))
-        rc = RunConfig(minutes=minutes, steps=steps)
+        fc = FieldConfig(**({"res_max": res_max, "res_start": min(32, res_max or 32)} | (field or {})))
+        rc = RunConfig(minutes=minutes, steps=steps, depth=depth)
         train_run(data, run_dir, rc if prune_weight is None else replace(rc, prune_weight=prune_weight), fc,
                   overwrite=True)
     run = load_run(run_dir)
@@ -406,12 +407,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--minutes", type=float, default=None, help="training budget (default 10 without --steps)")
     ap.add_argument("--capture", type=Path, help="capture, carve, crops: the synthetic capture (its ground_truth/)")
     ap.add_argument("--run", type=Path, help="capture: run folder to write (or read with --no-train)")
-    ap.add_argument("--res-max", type=int, default=128, help="capture: finest lattice; carve: the lattice")
+    ap.add_argument("--res-max", type=int, default=None,
+                    help="capture: finest lattice (default: dbb-train's, by the views); carve: the lattice (default 128)")
     ap.add_argument("--no-train", action="store_true", help="capture: score an existing run")
     ap.add_argument("--steps", type=int, default=None,
                     help="capture: train this many steps (alone unless --minutes is given too)")
     ap.add_argument("--prune-weight", type=float, default=None,
                     help="capture: the bake's weight pruning (default: dbb-train's)")
+    ap.add_argument("--depth", type=int, default=None, help="capture: octree depth (default: match the lattice)")
     ap.add_argument("--holdout-every", type=int, default=0,
                     help="capture: hold out every n-th crop instead of the last 20%% of the capture's time")
     ap.add_argument("--truth", type=Path, default=None,
@@ -432,7 +435,8 @@ def main(argv: list[str] | None = None) -> int:
         if a.capture is None or a.run is None:
             ap.error("capture needs --capture and --run")
         res = bench_capture(a.path, a.capture, a.run, a.minutes,
-                            a.res_max, not a.no_train, a.field, a.steps, a.truth, a.holdout_every, a.prune_weight)
+                            a.res_max, not a.no_train, a.field, a.steps, a.truth, a.holdout_every, a.prune_weight,
+                            a.depth)
     elif a.part == "ceiling":
         res = footage_ceiling(a.path, a.crop_size)
     elif a.part == "crops":
@@ -442,7 +446,7 @@ def main(argv: list[str] | None = None) -> int:
     elif a.part == "carve":
         if a.capture is None:
             ap.error("carve needs --capture")
-        res = carve_check(a.path, a.capture, a.res_max)
+        res = carve_check(a.path, a.capture, a.res_max or 128)
     else:
         res = bench_synth(a.path, a.minutes or 10.0)
     return emit(res, a.json)

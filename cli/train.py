@@ -28,8 +28,9 @@ def main() -> None:
 @click.option("--mode", type=click.Choice(["auto", "object", "scene"]), default="auto", show_default=True,
               help="object: bounded, RGBA supervision; scene: unbounded (contracted); auto: object if images have alpha.")
 @click.option("--sh-degree", type=click.IntRange(0, 3), default=2, show_default=True)
-@click.option("--res-max", type=click.IntRange(16, 512), default=512, show_default=True,
-              help="Finest lattice per axis inside the object's cube.")
+@click.option("--res-max", type=click.IntRange(16, 512), default=None,
+              help="Finest lattice per axis inside the object's cube (default: one cell per pixel, the next "
+                   "power of two at or above the pixels the training views span across the object, 32-512).")
 @click.option("--max-points", type=int, default=6_000_000, show_default=True,
               help="Do not refine past this many active lattice points (memory and time on CPU).")
 @click.option("--depth", type=click.IntRange(1, 8), default=None, help="Octree depth (default: match the lattice).")
@@ -70,7 +71,7 @@ def plenoctree(dataset, out, minutes, steps, downscale, resume, overwrite, mode,
     names = tuple(n.strip() for n in holdout_names.split(",") if n.strip())
     cfg = RunConfig(minutes, steps, downscale, mode, holdout_every, names, depth, prune_weight)
     fcfg = FieldConfig(sh_degree=sh_degree, res_max=res_max, max_points=max_points, batch_rays=batch_rays,
-                       res_start=min(32, res_max), robust_from=robust_from, carve_share=carve_share,
+                       res_start=min(32, res_max or 32), robust_from=robust_from, carve_share=carve_share,
                        observed_loss=observed_loss)
     run = train_run(dataset, out, cfg, fcfg, resume=resume, overwrite=overwrite)
     m = run.meta

@@ -74,7 +74,12 @@ class FieldConfig:
     mode: str = "object"            # "object" (bounded, RGBA) or "scene" (unbounded, contracted)
     sh_degree: int = 2
     res_start: int = 32             # lattice points per axis at the first stage
-    res_max: int = 512              # coarse-to-fine doubles up to this
+    # Coarse to fine doubles up to this. None: by the training views (:func:`lattice_for_views`),
+    # one cell per pixel across the object: a finer lattice than the pixels only gives the
+    # optimizer more freedom to fit each view's noise and the footage's blur at the outline
+    # (docs/benchmarks.md, issue 4, seventh session: 128 px crops, 10 min, 640x480 capture,
+    # held out on white 30.81 dB at 128^3 against 29.05 at 256^3).
+    res_max: int | None = None
     max_points: int = 6_000_000     # never upsample past this many active points (memory, time)
     step_cells: float = 0.5         # sample spacing along rays
     batch_rays: int = 4096
@@ -87,7 +92,9 @@ class FieldConfig:
     prune_alpha: float = 1e-3       # drop points whose one-cell opacity stays below this
     weight_eps: float = 1e-4        # colour is evaluated only where a sample's weight exceeds this
     init_alpha: float = 1e-4        # opacity of one step at the start (nearly empty)
-    upsample_at: tuple[float, ...] = (0.15, 0.3, 0.45)   # fraction of the budget per new stage
+    # Fraction of the budget at which each new stage starts; stages past the last one listed are
+    # not reached (checkpoints from before 512^3 was reachable list three).
+    upsample_at: tuple[float, ...] = (0.15, 0.3, 0.45, 0.6)
     # From this fraction of the budget on (final stage only), samples read their nearest lattice
     # point instead of interpolating: piecewise constant, exactly what the baked tree renders,
     # so the last steps fine-tune the tree itself (PlenOctrees' tree fine-tuning). 1: never.
@@ -158,6 +165,8 @@ class FieldConfig:
             raise DbbError(f"field mode must be object or scene, not {self.mode!r}")
         if not 0 <= self.sh_degree <= 3:
             raise DbbError("SH degree must be 0..3")
+        if self.res_max is None:
+            raise DbbError("the lattice size is not decided yet (res_max None: see lattice_for_views)")
         if self.res_start < 8 or self.res_max < self.res_start:
             raise DbbError("need 8 <= res_start <= res_max")
 
@@ -773,6 +782,27 @@ class TrainState:
             raise DbbError(f"cannot read checkpoint {path}: {e}") from None
         return cls(VoxelField.from_state(st["field"], device), st["step"], st["seconds"],
                    st["stage"], list(st["history"]))
+
+
+RES_LIMIT = 512
+
+
+def lattice_for_views(cams: list[tuple[np.ndarray, "Intrinsics"]], volume: ObjectVolume, mode: str,
+                      downscale: float = 1.0, start: int = 32) -> int:
+    """Finest lattice per axis for views ``cams`` ((4, 4) camera-to-world, OpenCV axes;
+    intrinsics) of the sphere ``volume``: the next power of two at or above the most pixels any
+    view (shrunk by ``downscale``) spans across the sphere, from ``start`` to 512. In scene mode
+    the lattice covers twice the sphere (contracted space), so twice that."""
+    c = np.asarray(volume.center, np.float64)
+    px = 0.0
+    for c2w, intr in cams:
+        s = min(volume.radius / max(float(np.linalg.norm(c2w[:3, 3] - c)), 1e-9), 0.999)
+        px = max(px, 2 * max(intr.fx, intr.fy) / downscale * math.tan(math.asin(s)))
+    need = px * (2 if mode == "scene" else 1)
+    res = start
+    while res < need and res < RES_LIMIT:
+        res *= 2
+    return min(res, RES_LIMIT)
 
 
 def stage_resolutions(cfg: FieldConfig) -> list[int]:

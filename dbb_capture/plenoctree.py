@@ -32,8 +32,8 @@ import torch
 from .datasets import (Frame, ObjectVolume, PosedDataset, estimate_volume, holdout_every,
                        holdout_named, load_dataset, scaled_intrinsics)
 from .errors import DbbError
-from .fields import (COLOUR_ACTIVATION, Budget, FieldConfig, TrainState, VoxelField, build_ray_bank,
-                     frame_tensors, new_field, pick_device, psnr, render_image, train)
+from .fields import (COLOUR_ACTIVATION, Budget, FieldConfig, TrainState, VoxelField, build_ray_bank, frame_tensors,
+                     lattice_for_views, new_field, pick_device, psnr, render_image, train)
 from .octree import PRUNE_WEIGHT, PlenOctree, TreeRenderer, bake
 from .outputs import (atomic_dir, check_run_output, read_json, resume_checkpoint, run_work_dir,
                       training_minutes, write_json)
@@ -124,6 +124,9 @@ def train_run(dataset: Path, out: Path, cfg: RunConfig, field_cfg: FieldConfig |
         mode = state.field.cfg.mode
     fcfg = field_cfg or FieldConfig()
     fcfg = replace(fcfg, mode=mode).for_dataset(ds.kind)
+    if fcfg.res_max is None:
+        fcfg = replace(fcfg, res_max=lattice_for_views([(f.c2w, f.intr) for f in train_f], volume, mode,
+                                                       cfg.downscale, fcfg.res_start))
     fcfg.validate()
     bank = build_ray_bank(train_f, cfg.downscale, volume, mode,
                           observed=(state.field.cfg if state is not None else fcfg).observed_loss)

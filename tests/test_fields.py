@@ -14,7 +14,7 @@ from dbb_capture.board import BoardSpec
 from dbb_capture.cameras import Intrinsics, look_at, opengl_from_opencv
 from dbb_capture.datasets import Frame, ObjectVolume
 from dbb_capture.fields import (Budget, FieldConfig, TrainState, build_ray_bank, contract, frame_tensors,
-                                new_field, psnr, render_image, sh_basis, train)
+                                lattice_for_views, new_field, psnr, render_image, sh_basis, stage_resolutions, train)
 
 
 def synthetic_object_frames(folder, n=24, size=32, seed=0):
@@ -377,3 +377,26 @@ def test_matte_treatments_follow_the_dataset_kind_unless_set():
         assert (other.carve_share, other.robust_from, other.observed_loss) == (0.0, 1.0, False)
     kept = FieldConfig(carve_share=0.0, robust_from=1.0, observed_loss=False).for_dataset("crops")
     assert (kept.carve_share, kept.robust_from, kept.observed_loss) == (0.0, 1.0, False)
+
+
+def test_lattice_follows_the_pixels_across_the_object():
+    """One cell per pixel: a sphere of radius 1 seen from 4 units by a 100 px focal length spans
+    2 * 100 * tan(asin(1/4)) = 51.6 px -> 64^3; nearer or sharper views raise it, to 512 at most;
+    scene mode (lattice over twice the sphere) doubles it; --downscale shrinks it."""
+    vol = ObjectVolume((0.0, 0.0, 0.0), 1.0)
+    cam = lambda dist: look_at(np.array([0.0, -dist, 0.0]), np.zeros(3), np.array([0.0, 0.0, 1.0]))
+    intr = lambda f: Intrinsics(128, 128, f, f, 64.0, 64.0)
+    assert lattice_for_views([(cam(4.0), intr(100.0))], vol, "object") == 64
+    assert lattice_for_views([(cam(4.0), intr(100.0)), (cam(2.0), intr(100.0))], vol, "object") == 128
+    assert lattice_for_views([(cam(4.0), intr(100.0))], vol, "scene") == 128
+    assert lattice_for_views([(cam(4.0), intr(100.0))], vol, "object", downscale=2.0) == 32
+    assert lattice_for_views([(cam(1.5), intr(2000.0))], vol, "object") == 512
+    assert lattice_for_views([(cam(40.0), intr(100.0))], vol, "object", start=16) == 16
+
+
+def test_coarse_to_fine_reaches_the_finest_lattice():
+    """The default schedule has a stage start for every doubling from 32^3 up to 512^3."""
+    cfg = FieldConfig(res_max=512)
+    assert stage_resolutions(cfg) == [32, 64, 128, 256, 512]
+    assert len(cfg.upsample_at) >= len(stage_resolutions(cfg)) - 1
+    assert stage_resolutions(replace(cfg, res_max=96)) == [32, 64, 96]
