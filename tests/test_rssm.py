@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 import json
 import math
 
@@ -57,6 +58,25 @@ def test_shapes_and_loss_parts():
     assert rssm.view_encoding(v, 4).shape == (2, 11, 16)
 
 
+@pytest.mark.parametrize("compose", ["blend", "accum"])
+def test_open_loop_frames_are_not_decoded_when_no_loss_scores_them(compose):
+    # open_loop_scale=0 (PlaNet: the prior learns from the KL and overshooting) skips the open
+    # loop's decoding: the same loss as a vanishing weight, without the "open_loop" term's cost.
+    x = torch.rand(2, 11, 4, 32, 32)
+    v = torch.rand(2, 11, 3) * 40
+    out = {}
+    for scale in (0.0, 1e-9):
+        torch.manual_seed(0)
+        m = rssm.Rssm(replace(SMALL, compose=compose, open_loop_scale=scale))
+        torch.manual_seed(1)
+        out[scale] = rssm.sequence_loss(m, x, v)
+    (l0, p0), (l1, p1) = out[0.0], out[1e-9]
+    assert "open_loop" not in p0 and "open_loop" in p1
+    assert l0.item() == pytest.approx(l1.item(), rel=1e-6)
+    for k in ("rec", "kl_dyn", "overshoot"):
+        assert p0[k] == pytest.approx(p1[k], rel=1e-6)
+
+
 def test_torchscript_round_trip_matches_eager(tmp_path):
     torch.manual_seed(1)
     m = rssm.Rssm(SMALL).eval()
@@ -109,7 +129,6 @@ def test_nan_guard_skips_bad_steps_and_gives_up_when_diverged(data, monkeypatch)
 
 
 def replace_steps(tc, n):
-    from dataclasses import replace
 
     return replace(tc, steps=n)
 
@@ -250,7 +269,6 @@ def test_skip_path_decodes_from_the_context_frame_and_old_runs_load():
 
 
 def replace_cfg(cfg, **kw):
-    from dataclasses import replace
 
     return replace(cfg, **kw)
 
