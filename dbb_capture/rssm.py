@@ -112,6 +112,9 @@ class RssmConfig:
                                    # only: the flow gets its reach from the posterior, and the open loop is
                                    # not asked to meet a blurred truth) or "open_loop"
     prior_first: bool = True       # also decode frame 1 from a prior sample at h_1 (the run-time first step)
+    first_step_scale: float = 0.0  # without open-loop pixel losses (open_loop_scale=0): weight of that
+                                   # frame's reconstruction alone (one decode a window; the decoder then
+                                   # meets prior samples, not only posteriors, at the step it runs first)
     open_loop_from: int = 1        # the training open loop starts from the filtering state of this frame:
                                    # 1 = after the posterior has seen frames 0 and 1 (see sequence_loss)
     motion_weight: float = 10.0    # extra weight of changing pixels in the reconstruction losses
@@ -155,6 +158,8 @@ class RssmConfig:
             raise DbbError(f"RSSM filter_decode must be posterior or prior, not {self.filter_decode!r}")
         if self.decoder_view not in ("absolute", "relative", "both"):
             raise DbbError(f"RSSM decoder_view must be absolute, relative or both, not {self.decoder_view!r}")
+        if self.first_step_scale < 0.0:
+            raise DbbError(f"RSSM first_step_scale must be >= 0, not {self.first_step_scale}")
         if self.sharp_scale < 0.0:
             raise DbbError(f"RSSM sharp_scale must be >= 0, not {self.sharp_scale}")
         if self.sharp_where not in ("all", "moving"):
@@ -850,6 +855,17 @@ def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[to
               or (cfg.pyramid_scale > 0 and cfg.pyramid_on in ("both", "open_loop")))
     if not pixels:
         loss = cfg.rec_scale * rec + cfg.kl_scale * kl + cfg.overshoot_scale * overshoot
+        first_err = None
+        if cfg.first_step_scale > 0 and cfg.prior_first and k >= 1:
+            h1 = hs[1]
+            pm1, ps1 = model.prior_stats(h1)
+            z1 = pm1 + cfg.open_loop_temperature * ps1 * torch.randn_like(ps1)
+            one = torch.ones(1, dtype=torch.long, device=x.device)
+            first = (chain(h1[:, None], z1[:, None], 1, 2, model.decoder.grid.expand(B, -1, -1, -1))[0].flatten(0, 1)
+                     if accum else decode(h1[:, None], z1[:, None], one))
+            first_err = _rec_loss(first, x[:, 1], with_predicted_change(
+                None if w is None else w[:, 1], first, x[:, 0], cfg.motion_weight, cfg.motion_weight_of))
+            loss = loss + cfg.first_step_scale * first_err
         if cfg.pyramid_scale > 0:
             py = pyramid_err(fr, fr_truth, cfg.pyramid_levels)
             loss = loss + cfg.pyramid_scale * py
@@ -857,6 +873,8 @@ def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[to
                  "kl_rep": torch.stack(kl_rep).mean().item(), "overshoot": overshoot.item()}
         if cfg.pyramid_scale > 0:
             parts["pyramid"] = py.item()
+        if first_err is not None:
+            parts["first_step"] = first_err.item()
         return loss, parts
     if cfg.prior_first and k >= 1:
         # The run-time step 1 exactly: z_1 sampled from the prior at h_1 (the open loop from

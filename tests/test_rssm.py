@@ -75,6 +75,18 @@ def test_open_loop_frames_are_not_decoded_when_no_loss_scores_them(compose):
     assert l0.item() == pytest.approx(l1.item(), rel=1e-6)
     for k in ("rec", "kl_dyn", "overshoot"):
         assert p0[k] == pytest.approx(p1[k], rel=1e-6)
+    # The run-time step 1 alone (first_step_scale) adds its reconstruction and trains the prior.
+    torch.manual_seed(0)
+    m = rssm.Rssm(replace(SMALL, compose=compose, open_loop_scale=0.0, first_step_scale=0.5))
+    torch.manual_seed(1)
+    l2, p2 = rssm.sequence_loss(m, x, v)
+    assert l2.item() == pytest.approx(l0.item() + 0.5 * p2["first_step"], rel=1e-5)
+    torch.manual_seed(0)
+    m0 = rssm.Rssm(replace(SMALL, compose=compose, open_loop_scale=0.0))
+    torch.manual_seed(1)
+    rssm.sequence_loss(m0, x, v)[0].backward()
+    l2.backward()
+    assert not torch.allclose(m.prior[-1].weight.grad, m0.prior[-1].weight.grad)
 
 
 def test_torchscript_round_trip_matches_eager(tmp_path):
