@@ -77,17 +77,20 @@ class RssmConfig:
     kl_balance: float = 0.8        # weight of the dynamics (prior-training) term
     kl_scale: float = 1.0
     overshoot_scale: float = 1.0   # latent overshooting along the open-loop rollout
-    open_loop_scale: float = 1.0   # reconstruction of the open-loop (prior-only) frames
+    open_loop_scale: float = 0.0   # reconstruction of the open-loop (prior-only) frames; 0 (PlaNet: the
+                                   # prior learns from the KL and overshooting): a sampled open loop scored
+                                   # by squared error learns to hedge (arms smeared), and its decoding is
+                                   # skipped (1.7x the steps)
     skip: bool = True              # decoder sees the context frame: its encoder maps (U-Net) and its
                                    # pixels, warped by a predicted flow and blended by a predicted mask
     max_flow: float = 0.5          # largest flow, in image half-widths (grid_sample units)
-    compose: str = "blend"         # skip path: "copy3" = per-pixel softmax over the context frame as is,
+    compose: str = "accum"         # skip path: "copy3" = per-pixel softmax over the context frame as is,
                                    # warped, and generated (CDNA-style; static parts copied exactly);
                                    # "blend" = one mask between warped and generated (earlier runs);
                                    # "accum" = the context frame resampled through a warp that each step
                                    # moves a little further (accumulated_warp), blended with generated content
     max_step_flow: float = 0.25    # "accum": largest flow of one step, in image half-widths
-    warp_leak: float = 0.0         # "accum": each step the warp's displacement shrinks by this fraction
+    warp_leak: float = 0.1         # "accum": each step the warp's displacement shrinks by this fraction
                                    # (toward the context frame's layout), so its errors stay bounded
     warp_leak_fps: float = 0.0     # > 0: warp_leak is the leak of one frame at this frame rate; training
                                    # rescales it to the dataset's rate, the same fraction per second
@@ -112,13 +115,13 @@ class RssmConfig:
                                    # only: the flow gets its reach from the posterior, and the open loop is
                                    # not asked to meet a blurred truth) or "open_loop"
     prior_first: bool = True       # also decode frame 1 from a prior sample at h_1 (the run-time first step)
-    first_step_scale: float = 0.0  # without open-loop pixel losses (open_loop_scale=0): weight of that
+    first_step_scale: float = 1.0  # without open-loop pixel losses (open_loop_scale=0): weight of that
                                    # frame's reconstruction alone (one decode a window; the decoder then
                                    # meets prior samples, not only posteriors, at the step it runs first)
     open_loop_from: int = 1        # the training open loop starts from the filtering state of this frame:
                                    # 1 = after the posterior has seen frames 0 and 1 (see sequence_loss)
     motion_weight: float = 10.0    # extra weight of changing pixels in the reconstruction losses
-    motion_weight_of: str = "truth"  # whose change weighs: "truth" (the truth's change from its previous
+    motion_weight_of: str = "both"  # whose change weighs: "truth" (the truth's change from its previous
                                    # frame) or "both" (also the prediction's change from that frame, so
                                    # change predicted where none comes weighs as much as change missed)
     decode_frames: int = 10        # frames decoded per window in each branch (a random subset of a
@@ -176,8 +179,10 @@ class RssmConfig:
     @classmethod
     def from_json(cls, d: dict) -> RssmConfig:
         names = {f.name for f in fields(cls)}
-        # Runs written before the skip path / copy3 / filter_decode / decoder_view had none.
-        d = {"skip": False, "compose": "blend", "filter_decode": "posterior", "decoder_view": "absolute", **d}
+        # Runs written before the skip path / copy3 / filter_decode / decoder_view had none, and
+        # those before the eleventh round's defaults (and first_step_scale) had the old values.
+        d = {"skip": False, "compose": "blend", "filter_decode": "posterior", "decoder_view": "absolute",
+             "warp_leak": 0.0, "motion_weight_of": "truth", "open_loop_scale": 1.0, "first_step_scale": 0.0, **d}
         return cls(**{k: v for k, v in d.items() if k in names})
 
 
@@ -189,6 +194,8 @@ class TrainConfig:
     steps: int | None = None
     batch: int = 8
     lr: float = 1e-3
+    lr_end: float = 1.0            # the learning rate falls (cosine) to this fraction of lr by the end of the
+                                   # budget (steps or minutes, whichever ends first); 1 = flat
     adam_eps: float = 1e-4
     grad_clip: float = 100.0
     checkpoint_seconds: float = 60.0
@@ -216,6 +223,8 @@ class TrainConfig:
             raise DbbError(f"val_fraction must be in [0, 0.5), not {self.val_fraction}")
         if self.val_every < 1:
             raise DbbError("val_every must be at least 1")
+        if not 0.0 < self.lr_end <= 1.0:
+            raise DbbError(f"lr_end must be in (0, 1], not {self.lr_end}")
 
 
 def leak_at_frame_rate(cfg: RssmConfig, fps: float | None) -> RssmConfig:
@@ -1251,6 +1260,11 @@ def _optimizer(model: Rssm, tcfg: TrainConfig) -> torch.optim.Optimizer:
     return torch.optim.Adam(model.parameters(), lr=tcfg.lr, eps=tcfg.adam_eps)
 
 
+def lr_at(tcfg: TrainConfig, fraction: float) -> float:
+    """Learning rate at ``fraction`` (0..1) of the budget: cosine from ``lr`` to ``lr * lr_end``."""
+    return tcfg.lr * (tcfg.lr_end + (1.0 - tcfg.lr_end) * 0.5 * (1.0 + math.cos(math.pi * fraction)))
+
+
 def pick_device() -> torch.device:
     return torch.device("cuda" if torch.cuda.is_available() else "cpu")
 
@@ -1298,6 +1312,9 @@ def _train_loop(state: TrainState, data: SequenceData, tcfg: TrainConfig, ckpt: 
             gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), tcfg.grad_clip)
             ok = bool(torch.isfinite(gnorm))
         if ok:
+            if tcfg.lr_end < 1.0:        # a function of the budget's fraction, so --resume continues it
+                for g in state.opt.param_groups:
+                    g["lr"] = lr_at(tcfg, _fraction(state, tcfg))
             state.opt.step()
             in_a_row = 0
         else:

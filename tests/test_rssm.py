@@ -16,7 +16,12 @@ from dbb_capture.errors import DbbError
 # One thread: the CI machine has 2 cores and other tests run beside these.
 torch.set_num_threads(1)
 
-SMALL = rssm.RssmConfig(size=32, deter=16, stoch=16, hidden=64, embed=64, enc_depth=8, dec_depth=8)
+# The mechanisms below are tested on the blend composite with the open loop's pixel loss (the
+# defaults before the eleventh round); the current defaults have their own tests.
+SMALL = rssm.RssmConfig(size=32, deter=16, stoch=16, hidden=64, embed=64, enc_depth=8, dec_depth=8,
+                        compose="blend", warp_leak=0.0, motion_weight_of="truth", open_loop_scale=1.0,
+                        first_step_scale=0.0)
+DEFAULTS = replace(rssm.RssmConfig(), size=32, deter=16, stoch=16, hidden=64, embed=64, enc_depth=8, dec_depth=8)
 
 
 @pytest.fixture(scope="module")
@@ -50,6 +55,11 @@ def test_shapes_and_loss_parts():
     loss, parts = rssm.sequence_loss(m, x, v)
     assert loss.ndim == 0 and math.isfinite(loss.item())
     assert set(parts) == {"loss", "rec", "open_loop", "kl_dyn", "kl_rep", "overshoot"}
+    # The defaults (eleventh round): accumulated warp, no open-loop pixel loss, the first step alone.
+    assert (DEFAULTS.compose, DEFAULTS.warp_leak, DEFAULTS.motion_weight_of, DEFAULTS.open_loop_scale,
+            DEFAULTS.first_step_scale) == ("accum", 0.1, "both", 0.0, 1.0)
+    parts = rssm.sequence_loss(rssm.Rssm(DEFAULTS), x, v)[1]
+    assert set(parts) == {"loss", "rec", "first_step", "kl_dyn", "kl_rep", "overshoot"}
     st = rssm.Stepper(m)
     h, z = st.start(torch.rand(3, 4, 32, 32), torch.zeros(3, 3))
     h, z, out = st.step(h, z, torch.zeros(3, 3))
@@ -585,6 +595,9 @@ def test_view_delta_encodes_the_change_of_viewpoint_since_the_context_frame():
     # Relative is the default; runs written before the setting existed were absolute, and load so.
     assert rssm.RssmConfig().decoder_view == "relative"
     assert rssm.RssmConfig.from_json({"size": 32}).decoder_view == "absolute"
+    # Runs written before the eleventh round's defaults keep the settings they were trained with.
+    old = rssm.RssmConfig.from_json({"size": 32, "skip": True, "compose": "blend"})
+    assert (old.warp_leak, old.motion_weight_of, old.open_loop_scale, old.first_step_scale) == (0.0, "truth", 1.0, 0.0)
 
 
 def test_best_of_k_scores_each_window_by_its_best_sample():
@@ -890,3 +903,15 @@ def test_snapped_flow_and_mask_copy_still_pixels_exactly_and_still_learn():
     assert ts.start(torch.rand(1, 4, 32, 32), torch.zeros(1, 3))[0].shape == (1, SMALL.deter)
     with pytest.raises(DbbError, match="flow_snap"):
         replace_cfg(SMALL, mask_snap=1.0).validate()
+
+
+def test_learning_rate_falls_over_the_budget(crops, tmp_path):
+    tcfg = rssm.TrainConfig(steps=6, batch=2, lr=2e-3, lr_end=0.25)
+    assert rssm.lr_at(tcfg, 0.0) == pytest.approx(2e-3) and rssm.lr_at(tcfg, 1.0) == pytest.approx(5e-4)
+    assert rssm.lr_at(tcfg, 0.5) == pytest.approx(1.25e-3)
+    rssm.train_run(crops.root, tmp_path / "run", SMALL, tcfg, quiet=True)
+    ck = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)
+    lr = ck["opt"]["param_groups"][0]["lr"]
+    assert 5e-4 <= lr < 0.8e-3                          # the last step's rate, near the end of the fall
+    with pytest.raises(DbbError, match="lr_end"):
+        rssm.TrainConfig(lr_end=0.0).validate()
