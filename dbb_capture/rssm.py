@@ -857,15 +857,18 @@ def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[to
     oi = torch.arange(k + 1, T1, device=x.device) if accum else _decoded(T1, cfg.decode_frames, k + 1, x.device)
     dh, dz, di = torch.stack(ol_h, 1)[:, oi - k - 1], torch.stack(ol_z, 1)[:, oi - k - 1], oi
     n0 = 0
+    loss = cfg.rec_scale * rec + cfg.kl_scale * kl + cfg.overshoot_scale * overshoot
+    parts = {"rec": rec.item(), "kl_dyn": dyn.item(), "kl_rep": torch.stack(kl_rep).mean().item(),
+             "overshoot": overshoot.item()}
     # The open loop's frames are decoded only for a loss that scores them; without one (PlaNet's
     # open_loop_scale=0) the prior learns from the KL and overshooting alone, and skipping the
     # decoder there roughly halves a step's cost (more steps in the same minutes).
     pixels = (cfg.open_loop_scale > 0 or cfg.sharp_scale > 0 or cfg.energy_scale > 0
               or (cfg.pyramid_scale > 0 and cfg.pyramid_on in ("both", "open_loop")))
+    ol_x = None
     if not pixels:
-        loss = cfg.rec_scale * rec + cfg.kl_scale * kl + cfg.overshoot_scale * overshoot
-        first_err = None
         if cfg.first_step_scale > 0 and cfg.prior_first and k >= 1:
+            # The run-time step 1 alone (below, with the open loop, it is one of its frames).
             h1 = hs[1]
             pm1, ps1 = model.prior_stats(h1)
             z1 = pm1 + cfg.open_loop_temperature * ps1 * torch.randn_like(ps1)
@@ -875,58 +878,51 @@ def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[to
             first_err = _rec_loss(first, x[:, 1], with_predicted_change(
                 None if w is None else w[:, 1], first, x[:, 0], cfg.motion_weight, cfg.motion_weight_of))
             loss = loss + cfg.first_step_scale * first_err
-        if cfg.pyramid_scale > 0:
-            py = pyramid_err(fr, fr_truth, cfg.pyramid_levels)
-            loss = loss + cfg.pyramid_scale * py
-        parts = {"loss": loss.item(), "rec": rec.item(), "kl_dyn": dyn.item(),
-                 "kl_rep": torch.stack(kl_rep).mean().item(), "overshoot": overshoot.item()}
-        if cfg.pyramid_scale > 0:
-            parts["pyramid"] = py.item()
-        if first_err is not None:
             parts["first_step"] = first_err.item()
-        return loss, parts
-    if cfg.prior_first and k >= 1:
-        # The run-time step 1 exactly: z_1 sampled from the prior at h_1 (the open loop from
-        # frame k >= 1 never decodes it; untrained, it drew a random motion and lost ~3 dB to copying).
-        h1 = hs[1].repeat(K, 1)
-        pm1, ps1 = model.prior_stats(h1)
-        z1 = pm1 + cfg.open_loop_temperature * ps1 * torch.randn_like(ps1)
-        if accum:                                        # from the identity warp, as at run time
-            first, _ = chain(h1[:, None], z1[:, None], 1, 2, model.decoder.grid.expand(K * B, -1, -1, -1), K)
-        else:
-            dh, dz = torch.cat([h1[:, None], dh], 1), torch.cat([z1[:, None], dz], 1)
-        di, n0 = torch.cat([di.new_ones(1), di]), 1
-    if accum:
-        ol_x, _ = chain(dh, dz, k + 1, T1, g_k.repeat(K, 1, 1, 1), K)
-        ol_x = (torch.cat([first, ol_x], 1) if n0 else ol_x).flatten(0, 1)
     else:
-        ol_x = decode(dh, dz, di, K)
-    copies = lambda a, i=di: a[:, i].flatten(0, 1).repeat(K, 1, 1, 1)
-    w_ol = with_predicted_change(None if w is None else copies(w), ol_x, copies(x, di - 1), cfg.motion_weight,
-                                 cfg.motion_weight_of)
-    ol = best_of(_pixel_err(ol_x, copies(x), w_ol), K, B)
-    loss = cfg.rec_scale * rec + cfg.kl_scale * kl + cfg.overshoot_scale * overshoot + cfg.open_loop_scale * ol
-    parts = {"loss": loss.item(), "rec": rec.item(), "open_loop": ol.item(), "kl_dyn": dyn.item(),
-             "kl_rep": torch.stack(kl_rep).mean().item(), "overshoot": overshoot.item()}
-    if cfg.sharp_scale > 0:
-        env = None
-        if cfg.sharp_where == "moving":                  # each frame's window's envelope, as copies() lays them out
-            env = motion_envelope(x)[:, None].expand(-1, len(di), -1, -1, -1).flatten(0, 1).repeat(K, 1, 1, 1)
-        sh = sharpness_match(ol_x, copies(x), env)
-        loss = loss + cfg.sharp_scale * sh
-        parts["loss"], parts["sharp"] = loss.item(), sh.item()
+        if cfg.prior_first and k >= 1:
+            # The run-time step 1 exactly: z_1 sampled from the prior at h_1 (the open loop from
+            # frame k >= 1 never decodes it; untrained, it drew a random motion and lost ~3 dB to copying).
+            h1 = hs[1].repeat(K, 1)
+            pm1, ps1 = model.prior_stats(h1)
+            z1 = pm1 + cfg.open_loop_temperature * ps1 * torch.randn_like(ps1)
+            if accum:                                        # from the identity warp, as at run time
+                first, _ = chain(h1[:, None], z1[:, None], 1, 2, model.decoder.grid.expand(K * B, -1, -1, -1), K)
+            else:
+                dh, dz = torch.cat([h1[:, None], dh], 1), torch.cat([z1[:, None], dz], 1)
+            di, n0 = torch.cat([di.new_ones(1), di]), 1
+        if accum:
+            ol_x, _ = chain(dh, dz, k + 1, T1, g_k.repeat(K, 1, 1, 1), K)
+            ol_x = (torch.cat([first, ol_x], 1) if n0 else ol_x).flatten(0, 1)
+        else:
+            ol_x = decode(dh, dz, di, K)
+        copies = lambda a, i=di: a[:, i].flatten(0, 1).repeat(K, 1, 1, 1)
+        w_ol = with_predicted_change(None if w is None else copies(w), ol_x, copies(x, di - 1), cfg.motion_weight,
+                                     cfg.motion_weight_of)
+        ol = best_of(_pixel_err(ol_x, copies(x), w_ol), K, B)
+        loss = loss + cfg.open_loop_scale * ol
+        parts["open_loop"] = ol.item()
+        if cfg.sharp_scale > 0:
+            env = None
+            if cfg.sharp_where == "moving":              # each frame's window's envelope, as copies() lays them out
+                env = motion_envelope(x)[:, None].expand(-1, len(di), -1, -1, -1).flatten(0, 1).repeat(K, 1, 1, 1)
+            sh = sharpness_match(ol_x, copies(x), env)
+            loss = loss + cfg.sharp_scale * sh
+            parts["sharp"] = sh.item()
     if cfg.pyramid_scale > 0:                            # every copy, not only the best (best_of)
         py = loss.new_zeros(())
         if cfg.pyramid_on in ("both", "filter"):
             py = py + pyramid_err(fr, fr_truth, cfg.pyramid_levels)
-        if cfg.pyramid_on in ("both", "open_loop"):
+        if ol_x is not None and cfg.pyramid_on in ("both", "open_loop"):
             py = py + pyramid_err(ol_x, copies(x), cfg.pyramid_levels)
         loss = loss + cfg.pyramid_scale * py
-        parts["loss"], parts["pyramid"] = loss.item(), py.item()
-    if cfg.energy_scale > 0 and len(oi) > 1 and int(oi[-1] - oi[0]) == len(oi) - 1:   # consecutive frames only
+        parts["pyramid"] = py.item()
+    if ol_x is not None and cfg.energy_scale > 0 and len(oi) > 1 and int(oi[-1] - oi[0]) == len(oi) - 1:
+        # consecutive frames only
         en = energy_match(ol_x[:B * len(di)].view(B, len(di), *x.shape[2:])[:, n0:], x[:, oi])
         loss = loss + cfg.energy_scale * en
-        parts["loss"], parts["energy"] = loss.item(), en.item()
+        parts["energy"] = en.item()
+    parts["loss"] = loss.item()
     return loss, parts
 
 
