@@ -866,31 +866,29 @@ def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[to
     pixels = (cfg.open_loop_scale > 0 or cfg.sharp_scale > 0 or cfg.energy_scale > 0
               or (cfg.pyramid_scale > 0 and cfg.pyramid_on in ("both", "open_loop")))
     ol_x = None
-    if not pixels:
-        if cfg.first_step_scale > 0 and cfg.prior_first and k >= 1:
-            # The run-time step 1 alone (below, with the open loop, it is one of its frames).
-            h1 = hs[1]
-            pm1, ps1 = model.prior_stats(h1)
-            z1 = pm1 + cfg.open_loop_temperature * ps1 * torch.randn_like(ps1)
-            one = torch.ones(1, dtype=torch.long, device=x.device)
-            first = (chain(h1[:, None], z1[:, None], 1, 2, model.decoder.grid.expand(B, -1, -1, -1))[0].flatten(0, 1)
-                     if accum else decode(h1[:, None], z1[:, None], one))
+    if cfg.prior_first and k >= 1 and (pixels or cfg.first_step_scale > 0):
+        # The run-time step 1 exactly: z_1 sampled from the prior at h_1 (the open loop from
+        # frame k >= 1 never decodes it; untrained, it drew a random motion and lost ~3 dB to copying).
+        # With the open loop it is one of the open loop's frames (K copies), without it scored alone.
+        reps = K if pixels else 1
+        h1 = hs[1].repeat(reps, 1)
+        pm1, ps1 = model.prior_stats(h1)
+        z1 = pm1 + cfg.open_loop_temperature * ps1 * torch.randn_like(ps1)
+        if accum:                                        # from the identity warp, as at run time
+            first, _ = chain(h1[:, None], z1[:, None], 1, 2, model.decoder.grid.expand(reps * B, -1, -1, -1), reps)
+        elif not pixels:
+            first = decode(h1[:, None], z1[:, None], torch.ones(1, dtype=torch.long, device=x.device))[:, None]
+        if pixels:
+            if not accum:
+                dh, dz = torch.cat([h1[:, None], dh], 1), torch.cat([z1[:, None], dz], 1)
+            di, n0 = torch.cat([di.new_ones(1), di]), 1
+        else:
+            first = first.flatten(0, 1)
             first_err = _rec_loss(first, x[:, 1], with_predicted_change(
                 None if w is None else w[:, 1], first, x[:, 0], cfg.motion_weight, cfg.motion_weight_of))
             loss = loss + cfg.first_step_scale * first_err
             parts["first_step"] = first_err.item()
-    else:
-        if cfg.prior_first and k >= 1:
-            # The run-time step 1 exactly: z_1 sampled from the prior at h_1 (the open loop from
-            # frame k >= 1 never decodes it; untrained, it drew a random motion and lost ~3 dB to copying).
-            h1 = hs[1].repeat(K, 1)
-            pm1, ps1 = model.prior_stats(h1)
-            z1 = pm1 + cfg.open_loop_temperature * ps1 * torch.randn_like(ps1)
-            if accum:                                        # from the identity warp, as at run time
-                first, _ = chain(h1[:, None], z1[:, None], 1, 2, model.decoder.grid.expand(K * B, -1, -1, -1), K)
-            else:
-                dh, dz = torch.cat([h1[:, None], dh], 1), torch.cat([z1[:, None], dz], 1)
-            di, n0 = torch.cat([di.new_ones(1), di]), 1
+    if pixels:
         if accum:
             ol_x, _ = chain(dh, dz, k + 1, T1, g_k.repeat(K, 1, 1, 1), K)
             ol_x = (torch.cat([first, ol_x], 1) if n0 else ol_x).flatten(0, 1)
