@@ -656,24 +656,45 @@ def test_augment_mirrors_and_reverses_whole_windows():
         rssm.TrainConfig(augment="flip,spin").validate()
 
 
-def test_stepper_upsamples_with_subpixel_convolutions_exactly():
+def test_stepper_upsamples_with_phase_convolutions_exactly():
     torch.manual_seed(0)
-    up = torch.nn.ConvTranspose2d(12, 5, 4, 2, 1)
-    x = torch.randn(2, 12, 7, 9)
-    with torch.no_grad():
-        assert torch.allclose(rssm.SubpixelUp(up)(x), up(x), atol=1e-5)
+    for c_in, c_out in ((12, 5), (40, 8)):          # below and above the channels-last width
+        up = torch.nn.ConvTranspose2d(c_in, c_out, 4, 2, 1)
+        x = torch.randn(2, c_in, 7, 9)
+        with torch.no_grad():
+            assert torch.allclose(rssm.PhaseUp(up)(x), up(x), atol=1e-5)
     with pytest.raises(ValueError):
-        rssm.SubpixelUp(torch.nn.ConvTranspose2d(4, 4, 3, 2, 1))
+        rssm.PhaseUp(torch.nn.ConvTranspose2d(4, 4, 3, 2, 1))
     # The stepper's decoder is the same function as the trained one, with faster layers.
     m = rssm.Rssm(SMALL).eval()
     st = rssm.Stepper(m)
-    assert any(isinstance(u, rssm.SubpixelUp) for u in st.decoder.ups)
+    assert any(isinstance(u, rssm.PhaseUp) for u in st.decoder.ups)
     assert all(isinstance(u, torch.nn.ConvTranspose2d) for u in m.decoder.ups)     # training untouched
     pm = torch.rand(3, 4, 32, 32)
     feat = torch.randn(3, m.decoder.fc[0].in_features)
     with torch.no_grad():
         ctx = m.encoder.features(pm)
         assert torch.allclose(st.decoder(feat, ctx, pm), m.decoder(feat, ctx, pm), atol=1e-5)
+
+
+def test_fast_default_step_is_the_general_step():
+    # The default stepper ("accum", relative views) encodes the view changes from the angles;
+    # the general path encodes each view and takes differences (view_delta_encoding), as training.
+    torch.manual_seed(4)
+    m = rssm.Rssm(DEFAULTS).eval()
+    with torch.no_grad():
+        for p in m.parameters():
+            p.add_(0.05 * torch.randn_like(p))      # moving, not the initial zero flow
+    first, views = torch.rand(2, 4, 32, 32), torch.rand(2, 7, 3) * 300 - 150
+    fast, general = rssm.Stepper(m), rssm.Stepper(m)
+    general.fast_views = False
+    assert fast.fast_views
+    out = []
+    for st in (fast, general, rssm.script_stepper(m)):
+        torch.manual_seed(7)
+        out.append(rssm.rollout(st, first, views))
+    assert torch.allclose(out[0], out[1], atol=1e-5) and torch.allclose(out[0], out[2], atol=1e-5)
+    assert float((out[0][:, -1] - out[0][:, 0]).abs().max()) > 0.05     # the frames do move
 
 
 def test_selection_holds_out_the_training_tail_and_writes_the_best_model(data, tmp_path):
