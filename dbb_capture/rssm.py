@@ -197,6 +197,11 @@ class TrainConfig:
     lr_end: float = 1.0            # the learning rate falls (cosine) to this fraction of lr by the end of the
                                    # budget (steps or minutes, whichever ends first); 1 = flat
     adam_eps: float = 1e-4
+    weight_decay: float = 0.0      # > 0: AdamW's decoupled decay (each step the weights shrink by lr x this),
+                                   # against memorising a short capture's windows
+    ema: float = 0.0               # > 0: the run's model is the exponential moving average of the weights
+                                   # with this decay per step (0.999: about the last 1000 steps), kept beside
+                                   # the trained ones; it smooths the late steps' noise
     grad_clip: float = 100.0
     checkpoint_seconds: float = 60.0
     seed: int = 0
@@ -225,6 +230,10 @@ class TrainConfig:
             raise DbbError("val_every must be at least 1")
         if not 0.0 < self.lr_end <= 1.0:
             raise DbbError(f"lr_end must be in (0, 1], not {self.lr_end}")
+        if self.weight_decay < 0.0:
+            raise DbbError(f"weight_decay must be at least 0, not {self.weight_decay}")
+        if not 0.0 <= self.ema < 1.0:
+            raise DbbError(f"ema must be in [0, 1), not {self.ema}")
 
 
 def leak_at_frame_rate(cfg: RssmConfig, fps: float | None) -> RssmConfig:
@@ -1263,14 +1272,40 @@ class TrainState:
     bad_steps: int = 0                      # non-finite losses or gradients skipped, in total
     history: list[dict] = field(default_factory=list)
     selection: Selection | None = None      # model selection on held-out training windows (val_fraction)
+    ema: dict | None = None                 # the weights' moving average (TrainConfig.ema), as a state dict
 
     def save(self, path: Path) -> None:
         tmp = Path(path).with_suffix(".tmp")
         torch.save({"config": asdict(self.model.cfg), "model": self.model.state_dict(),
                     "opt": self.opt.state_dict(), "step": self.step, "seconds": self.seconds,
                     "bad_steps": self.bad_steps, "history": self.history,
-                    "selection": None if self.selection is None else asdict(self.selection)}, tmp)
+                    "selection": None if self.selection is None else asdict(self.selection),
+                    "ema": self.ema}, tmp)
         tmp.replace(path)
+
+    def update_ema(self, decay: float) -> None:
+        """Move the average toward the current weights (it starts as them)."""
+        sd = self.model.state_dict()
+        if self.ema is None:
+            self.ema = {k: v.detach().clone() for k, v in sd.items()}
+            return
+        with torch.no_grad():
+            for k, v in sd.items():
+                if v.is_floating_point():
+                    self.ema[k].lerp_(v, 1.0 - decay)
+                else:
+                    self.ema[k].copy_(v)
+
+    def run_model(self) -> Rssm:
+        """The model a run writes, on the CPU in eval mode: the selected one (``val_fraction``),
+        else the weights' average (``ema``), else the last weights."""
+        model = self.model.cpu().eval()
+        best = self.selection.state_dict if self.selection is not None else None
+        sd = best if best is not None else self.ema
+        if sd is not None:
+            model = copy.deepcopy(model)
+            model.load_state_dict(sd)
+        return model
 
     @classmethod
     def load(cls, path: Path, tcfg: TrainConfig, device: torch.device) -> TrainState:
@@ -1284,10 +1319,13 @@ class TrainState:
         st.opt.load_state_dict(ck["opt"])
         if ck.get("selection"):
             st.selection = Selection(**ck["selection"])
+        st.ema = ck.get("ema")
         return st
 
 
 def _optimizer(model: Rssm, tcfg: TrainConfig) -> torch.optim.Optimizer:
+    if tcfg.weight_decay > 0.0:
+        return torch.optim.AdamW(model.parameters(), lr=tcfg.lr, eps=tcfg.adam_eps, weight_decay=tcfg.weight_decay)
     return torch.optim.Adam(model.parameters(), lr=tcfg.lr, eps=tcfg.adam_eps)
 
 
@@ -1347,6 +1385,8 @@ def _train_loop(state: TrainState, data: SequenceData, tcfg: TrainConfig, ckpt: 
                 for g in state.opt.param_groups:
                     g["lr"] = lr_at(tcfg, _fraction(state, tcfg))
             state.opt.step()
+            if tcfg.ema > 0.0:
+                state.update_ema(tcfg.ema)
             in_a_row = 0
         else:
             state.bad_steps += 1
@@ -1373,7 +1413,8 @@ def _train_loop(state: TrainState, data: SequenceData, tcfg: TrainConfig, ckpt: 
         if ckpt is not None and tcfg.snapshot_every > 0 and state.step % tcfg.snapshot_every == 0:
             snaps = ckpt.parent.parent / (ckpt.parent.name.removesuffix(".work") + ".snapshots")
             snaps.mkdir(exist_ok=True)
-            torch.save({"config": asdict(model.cfg), "state_dict": model.state_dict()}, snaps / f"{state.step:06d}.pt")
+            torch.save({"config": asdict(model.cfg), "state_dict": state.ema if state.ema is not None
+                        else model.state_dict()}, snaps / f"{state.step:06d}.pt")
         if ckpt is not None and now - last_ckpt > tcfg.checkpoint_seconds:
             state.save(ckpt)
             last_ckpt = now
@@ -1688,12 +1729,8 @@ def train_run(dataset: Path, out: Path, cfg: RssmConfig, tcfg: TrainConfig, resu
 
 def write_run(out: Path, state: TrainState, data: SequenceData, dataset: Path, tcfg: TrainConfig,
               ckpt: Path, wall: float, temperature: float = 1.0) -> dict:
-    model = state.model.cpu().eval()
+    model = state.run_model()           # checkpoint.pt keeps the last weights (for --resume)
     sel = state.selection
-    if sel is not None and sel.state_dict is not None:
-        # The selected model is the run's model; checkpoint.pt keeps the last one (for --resume).
-        model = copy.deepcopy(model)
-        model.load_state_dict(sel.state_dict)
     cfg = model.cfg
     with atomic_dir(out, overwrite=True) as tmp:
         shutil.copyfile(ckpt, tmp / "checkpoint.pt")
@@ -1717,6 +1754,8 @@ def write_run(out: Path, state: TrainState, data: SequenceData, dataset: Path, t
             "training": {"steps": state.step, "seconds": round(state.seconds, 1),
                          "wall_seconds_this_session": round(wall, 1), "budget_minutes": tcfg.minutes,
                          "budget_steps": tcfg.steps, "batch": tcfg.batch, "lr": tcfg.lr,
+                         "weights": "selected" if sel is not None and sel.state_dict is not None
+                         else "moving average" if state.ema is not None else "last",
                          "non_finite_steps_skipped": state.bad_steps,
                          "train_sequences": len(data.starts("train")),
                          "test_sequences": len(data.starts("test")),

@@ -936,3 +936,43 @@ def test_learning_rate_falls_over_the_budget(crops, tmp_path):
     assert 5e-4 <= lr < 0.8e-3                          # the last step's rate, near the end of the fall
     with pytest.raises(DbbError, match="lr_end"):
         rssm.TrainConfig(lr_end=0.0).validate()
+
+
+def test_weight_decay_shrinks_the_weights_it_does_not_need():
+    # AdamW's decoupled decay: with a zero loss, every step multiplies the weights by 1 - lr x decay.
+    m = rssm.Rssm(SMALL)
+    w0 = m.prior[0].weight.detach().clone()
+    for decay, factor in ((0.0, 1.0), (0.5, (1 - 1e-3 * 0.5) ** 3)):
+        m.prior[0].weight.data.copy_(w0)
+        opt = rssm._optimizer(m, rssm.TrainConfig(lr=1e-3, weight_decay=decay))
+        for _ in range(3):
+            opt.zero_grad()
+            (0.0 * sum(p.sum() for p in m.parameters())).backward()
+            opt.step()
+        assert torch.allclose(m.prior[0].weight, w0 * factor, atol=1e-7)
+    with pytest.raises(DbbError, match="weight_decay"):
+        rssm.TrainConfig(weight_decay=-1.0).validate()
+
+
+def test_moving_average_of_the_weights_is_the_written_model(crops, tmp_path):
+    m = rssm.Rssm(SMALL)
+    st = rssm.TrainState(m, rssm._optimizer(m, rssm.TrainConfig()))
+    w = m.prior[0].weight
+    st.update_ema(0.9)                                 # starts as the weights
+    w0 = w.detach().clone()
+    with torch.no_grad():
+        w.add_(1.0)
+    st.update_ema(0.9)
+    assert torch.allclose(st.ema["prior.0.weight"], w0 + 0.1, atol=1e-6)
+    assert torch.allclose(st.run_model().prior[0].weight, w0 + 0.1, atol=1e-6)
+    assert torch.equal(m.prior[0].weight, w0 + 1.0)    # training keeps its own weights
+    # A run with the average writes it, and a resumed run continues it from the checkpoint.
+    tcfg = rssm.TrainConfig(steps=3, batch=2, ema=0.5)
+    meta = rssm.train_run(crops.root, tmp_path / "run", SMALL, tcfg, quiet=True)
+    assert meta["training"]["weights"] == "moving average"
+    ck = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)
+    written = torch.load(tmp_path / "run" / "model.pt", weights_only=False)["state_dict"]
+    assert torch.equal(written["prior.0.weight"], ck["ema"]["prior.0.weight"])
+    assert not torch.equal(written["prior.0.weight"], ck["model"]["prior.0.weight"])
+    with pytest.raises(DbbError, match="ema"):
+        rssm.TrainConfig(ema=1.0).validate()
