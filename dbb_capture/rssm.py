@@ -197,11 +197,11 @@ class TrainConfig:
     lr_end: float = 1.0            # the learning rate falls (cosine) to this fraction of lr by the end of the
                                    # budget (steps or minutes, whichever ends first); 1 = flat
     adam_eps: float = 1e-4
-    weight_decay: float = 0.0      # > 0: AdamW's decoupled decay (each step the weights shrink by lr x this),
-                                   # against memorising a short capture's windows
-    ema: float = 0.0               # > 0: the run's model is the exponential moving average of the weights
-                                   # with this decay per step (0.999: about the last 1000 steps), kept beside
-                                   # the trained ones; it smooths the late steps' noise
+    weight_decay: float = 0.25     # > 0: AdamW's decoupled decay (each step the weights shrink by lr x this),
+                                   # against memorising a short capture's windows (0 = Adam, before the twelfth round)
+    ema: float = 0.995             # > 0: the run's model is the exponential moving average of the weights
+                                   # with this decay per step (0.995: about the last 200 steps), kept beside
+                                   # the trained ones; it smooths the late steps' noise (0 = the last weights)
     grad_clip: float = 100.0
     checkpoint_seconds: float = 60.0
     seed: int = 0
@@ -1273,6 +1273,7 @@ class TrainState:
     history: list[dict] = field(default_factory=list)
     selection: Selection | None = None      # model selection on held-out training windows (val_fraction)
     ema: dict | None = None                 # the weights' moving average (TrainConfig.ema), as a state dict
+    ema_updates: int = 0
 
     def save(self, path: Path) -> None:
         tmp = Path(path).with_suffix(".tmp")
@@ -1280,19 +1281,23 @@ class TrainState:
                     "opt": self.opt.state_dict(), "step": self.step, "seconds": self.seconds,
                     "bad_steps": self.bad_steps, "history": self.history,
                     "selection": None if self.selection is None else asdict(self.selection),
-                    "ema": self.ema}, tmp)
+                    "ema": self.ema, "ema_updates": self.ema_updates}, tmp)
         tmp.replace(path)
 
     def update_ema(self, decay: float) -> None:
-        """Move the average toward the current weights (it starts as them)."""
+        """Move the average toward the current weights. Bias-corrected (as Adam's moments): after
+        n updates it is sum_i decay^(n-i) w_i / sum_i decay^(n-i), the weights seen so far and
+        never the initial ones, so a short run's average is as good as a long one's."""
         sd = self.model.state_dict()
+        self.ema_updates += 1
         if self.ema is None:
             self.ema = {k: v.detach().clone() for k, v in sd.items()}
             return
+        share = (1.0 - decay) / (1.0 - decay ** self.ema_updates)
         with torch.no_grad():
             for k, v in sd.items():
                 if v.is_floating_point():
-                    self.ema[k].lerp_(v, 1.0 - decay)
+                    self.ema[k].lerp_(v, share)
                 else:
                     self.ema[k].copy_(v)
 
@@ -1319,7 +1324,7 @@ class TrainState:
         st.opt.load_state_dict(ck["opt"])
         if ck.get("selection"):
             st.selection = Selection(**ck["selection"])
-        st.ema = ck.get("ema")
+        st.ema, st.ema_updates = ck.get("ema"), ck.get("ema_updates", 0)
         return st
 
 

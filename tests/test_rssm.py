@@ -962,10 +962,13 @@ def test_moving_average_of_the_weights_is_the_written_model(crops, tmp_path):
     w0 = w.detach().clone()
     with torch.no_grad():
         w.add_(1.0)
-    st.update_ema(0.9)
-    assert torch.allclose(st.ema["prior.0.weight"], w0 + 0.1, atol=1e-6)
-    assert torch.allclose(st.run_model().prior[0].weight, w0 + 0.1, atol=1e-6)
+    st.update_ema(0.9)                                 # bias-corrected: (0.9 w0 + 1 w1) / 1.9
+    assert torch.allclose(st.ema["prior.0.weight"], w0 + 1 / 1.9, atol=1e-6)
+    assert torch.allclose(st.run_model().prior[0].weight, w0 + 1 / 1.9, atol=1e-6)
     assert torch.equal(m.prior[0].weight, w0 + 1.0)    # training keeps its own weights
+    for _ in range(200):                               # long after: the plain exponential average
+        st.update_ema(0.9)
+    assert torch.allclose(st.ema["prior.0.weight"], w0 + 1.0, atol=1e-5)
     # A run with the average writes it, and a resumed run continues it from the checkpoint.
     tcfg = rssm.TrainConfig(steps=3, batch=2, ema=0.5)
     meta = rssm.train_run(crops.root, tmp_path / "run", SMALL, tcfg, quiet=True)
@@ -976,3 +979,5 @@ def test_moving_average_of_the_weights_is_the_written_model(crops, tmp_path):
     assert not torch.equal(written["prior.0.weight"], ck["model"]["prior.0.weight"])
     with pytest.raises(DbbError, match="ema"):
         rssm.TrainConfig(ema=1.0).validate()
+    # The defaults since the twelfth round: both seeds of the sample met the bars with them.
+    assert (rssm.TrainConfig().weight_decay, rssm.TrainConfig().ema) == (0.25, 0.995)
