@@ -378,10 +378,8 @@ def warp_maps(maps: list[torch.Tensor], grid: torch.Tensor) -> list[torch.Tensor
     out: list[torch.Tensor] = []
     for m in maps[::-1]:
         r = m.shape[-1]
-        while g.shape[-1] > r and g.shape[-1] % (2 * r) == 0:
+        while g.shape[-1] > r:                 # sizes are powers of two (RssmConfig.validate)
             g = F.avg_pool2d(g, 2)
-        if g.shape[-1] != r:
-            g = F.adaptive_avg_pool2d(g, r)
         out.append(F.grid_sample(m, g.permute(0, 2, 3, 1), mode="bilinear", padding_mode="border",
                                  align_corners=False))
     return out[::-1]
