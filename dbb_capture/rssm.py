@@ -978,10 +978,8 @@ class Stepper(nn.Module):
         self.temperature = float(temperature)
         self.ctx = []                  # the context frame's encoder maps (skip path), set by start()
         self.ctx_pm = torch.zeros(0)
-        self.ctx_pe = torch.zeros(0)
-        self.warp = torch.zeros(0)     # compose "accum": the last frame's warp and view, set by start(), step()
-        self.prev_pe = torch.zeros(0)
-        self.ctx_view = torch.zeros(0)  # the context's and the last frame's viewpoints (N, 3)
+        self.warp = torch.zeros(0)     # compose "accum": the last frame's warp, set by start(), step()
+        self.ctx_view = torch.zeros(0)  # the context's and (accum) the last frame's viewpoints (N, 3)
         self.prev_view = torch.zeros(0)
         self.fast_views = self.accum and self.decoder_view == "relative"
         # Radians per degree at octaves 1, 2, 4, ... (view_encoding's frequencies).
@@ -999,8 +997,6 @@ class Stepper(nn.Module):
         if self.skip:
             self.ctx = self.encoder.features(pm)
             self.ctx_pm = pm
-            self.ctx_pe = self._pe(view)
-            self.prev_pe = self.ctx_pe
             self.ctx_view = view
             self.prev_view = view
             self.warp = self.decoder.grid.expand(rgba.shape[0], -1, -1, -1).to(rgba.dtype)
@@ -1032,12 +1028,14 @@ class Stepper(nn.Module):
             return self._fast_step(h, z, view)
         h, z = self._transition(h, z)
         pe = self._pe(view)
+        ctx_pe = self._pe(self.ctx_view) if self.skip else pe      # without the skip path: unused
         if self.accum:
-            feat = decoder_features(h, z, pe, self.ctx_pe, self.skip, self.decoder_view, self.freqs, self.prev_pe)
+            feat = decoder_features(h, z, pe, ctx_pe, self.skip, self.decoder_view, self.freqs,
+                                    self._pe(self.prev_view))
             pm, self.warp = self.decoder.accum_step(feat, self.ctx, self.ctx_pm, self.warp)
-            self.prev_pe = pe
+            self.prev_view = view
         else:
-            feat = decoder_features(h, z, pe, self.ctx_pe, self.skip, self.decoder_view, self.freqs)
+            feat = decoder_features(h, z, pe, ctx_pe, self.skip, self.decoder_view, self.freqs)
             pm = self.decoder(feat, self.ctx, self.ctx_pm)
         return h, z, straight(pm)
 
