@@ -138,6 +138,10 @@ class RssmConfig:
                                    # input; it carries over to viewpoints never seen in training and cannot
                                    # look a pose up by viewpoint); "absolute" = the encodings of the current
                                    # and the context view (runs before the fifth round); "both"
+    keypoints: int = 0             # > 0: this many spatial-softmax keypoints join the encoder's embedding
+                                   # (SpatialSoftmax): the flattened conv stack all but ignores a part a few
+                                   # pixels wide (a 5-px ball moves its embedding by ~1e-5), a keypoint
+                                   # follows it across the frame
 
     def validate(self) -> None:
         if self.size not in SIZES:
@@ -175,6 +179,8 @@ class RssmConfig:
             raise DbbError(f"RSSM open_loop_temperature must be >= 0, not {self.open_loop_temperature}")
         if self.open_loop_samples < 1:
             raise DbbError("RSSM open_loop_samples must be at least 1")
+        if self.keypoints < 0:
+            raise DbbError(f"RSSM keypoints must be >= 0, not {self.keypoints}")
 
     @classmethod
     def from_json(cls, d: dict) -> RssmConfig:
@@ -397,8 +403,32 @@ def _dec_channels(cfg: RssmConfig) -> list[int]:
     return [max(8, min(128, cfg.dec_depth * 32 // (4 * 2 ** i))) for i in range(n)]
 
 
+class SpatialSoftmax(nn.Module):
+    """Feature map (B, C, H, W) -> keypoints (B, 2K): the expected (x, y) in [-1, 1] of each of K
+    softmax distributions over the map (Finn et al. 2016, deep spatial autoencoders).
+
+    Each channel of a 1x1 conv is standardised over the map before the softmax, so a small
+    part unlike its surroundings dominates whatever its size; the sharpness is learned (one per
+    keypoint, starting at 5: a 5-px ball on a plain wall then moves its keypoints by ~0.1-0.6).
+    """
+
+    def __init__(self, channels: int, k: int, size: int):
+        super().__init__()
+        self.conv = nn.Conv2d(channels, k, 1)
+        self.log_beta = nn.Parameter(torch.full((k,), math.log(5.0)))
+        c = (torch.arange(size, dtype=torch.float32) + 0.5) * (2.0 / size) - 1.0     # pixel centres
+        self.register_buffer("coords", c, persistent=False)
+
+    def forward(self, f: torch.Tensor) -> torch.Tensor:
+        logits = self.conv(f).flatten(2)
+        logits = (logits - logits.mean(-1, keepdim=True)) / (logits.std(-1, keepdim=True) + 1e-5)
+        p = torch.softmax(logits * self.log_beta.exp()[:, None], -1).view(f.shape[0], -1, f.shape[2], f.shape[3])
+        return torch.cat([(p.sum(2) * self.coords).sum(-1), (p.sum(3) * self.coords).sum(-1)], 1)
+
+
 class Encoder(nn.Module):
-    """Premultiplied RGBA (B, 4, S, S) in [0, 1] -> embedding (B, embed); also its feature maps."""
+    """Premultiplied RGBA (B, 4, S, S) in [0, 1] -> embedding (B, embed + 2 * keypoints); also its
+    feature maps."""
 
     def __init__(self, cfg: RssmConfig):
         super().__init__()
@@ -409,9 +439,20 @@ class Encoder(nn.Module):
             c_in = c
         self.convs = nn.Sequential(*layers)
         self.out = nn.Linear(c_in * 16, cfg.embed)
+        # Keypoints over the first (finest) feature map; None keeps earlier runs' weights loadable.
+        self.keypoints = (SpatialSoftmax(_enc_channels(cfg)[0], cfg.keypoints, cfg.size // 2)
+                          if cfg.keypoints > 0 else None)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return F.silu(self.out(self.convs(x - 0.5).flatten(1)))
+        x = x - 0.5
+        kp = x.new_zeros(x.shape[0], 0)
+        i = 0
+        for layer in self.convs:
+            x = layer(x)
+            if i == 1 and self.keypoints is not None:
+                kp = self.keypoints(x)
+            i += 1
+        return torch.cat([F.silu(self.out(x.flatten(1))), kp], 1)
 
     def features(self, x: torch.Tensor) -> list[torch.Tensor]:
         """Feature maps after each conv, coarsest first: [(B, C, 4, 4), (B, C', 8, 8), ..., (B, c, S/2, S/2)]."""
@@ -607,7 +648,7 @@ class Rssm(nn.Module):
         self.z_in = nn.Sequential(nn.Linear(cfg.stoch, cfg.hidden), nn.SiLU())
         self.gru = nn.GRUCell(cfg.hidden, cfg.deter)
         self.prior = nn.Sequential(nn.Linear(cfg.deter, cfg.hidden), nn.SiLU(), nn.Linear(cfg.hidden, 2 * cfg.stoch))
-        self.post = nn.Sequential(nn.Linear(cfg.deter + cfg.embed + 4 * cfg.view_freqs, cfg.hidden), nn.SiLU(),
+        self.post = nn.Sequential(nn.Linear(cfg.deter + cfg.embed + 2 * cfg.keypoints + 4 * cfg.view_freqs, cfg.hidden), nn.SiLU(),
                                   nn.Linear(cfg.hidden, 2 * cfg.stoch))
 
     # -- pieces shared by training and the stepper

@@ -981,3 +981,43 @@ def test_moving_average_of_the_weights_is_the_written_model(crops, tmp_path):
         rssm.TrainConfig(ema=1.0).validate()
     # The defaults since the twelfth round: both seeds of the sample met the bars with them.
     assert (rssm.TrainConfig().weight_decay, rssm.TrainConfig().ema) == (0.25, 0.995)
+
+
+def test_keypoints_follow_a_small_part_the_flattened_embedding_hardly_sees(tmp_path):
+    """A 2x2-px spot on a plain 32x32 frame: the keypoints move with it by a large fraction of the
+    frame, the flattened conv embedding by orders of magnitude less; the stepper scripts and
+    matches the model with them, and runs without keypoints keep their weights' names."""
+    torch.manual_seed(0)
+    cfg = replace(DEFAULTS, keypoints=8)
+    m = rssm.Rssm(cfg).eval()
+    frames = torch.full((6, 4, 32, 32), 0.6)
+    frames[:, 3] = 1.0
+    for i in range(6):                       # the spot travels left to right along a row
+        frames[i, :3, 15:17, 3 + 5 * i:5 + 5 * i] = torch.tensor([0.9, 0.1, 0.1])[:, None, None]
+    with torch.no_grad():
+        e = m.encoder(frames)
+    assert e.shape == (6, cfg.embed + 2 * cfg.keypoints)
+    emb_spread = e[:, :cfg.embed].std(0).mean()
+    kp_spread = e[:, cfg.embed:].std(0).mean()
+    assert kp_spread > 0.05 and kp_spread > 100 * emb_spread
+    # A keypoint that picks the spot's channel lands on it: x grows with the spot's column.
+    sm = rssm.SpatialSoftmax(1, 1, 16)
+    with torch.no_grad():
+        sm.conv.weight.fill_(1.0)
+        sm.conv.bias.zero_()
+        sm.log_beta.fill_(math.log(50.0))
+        f = torch.zeros(1, 1, 16, 16)
+        f[0, 0, 4, 12] = 1.0
+        kx, ky = sm(f)[0]
+    assert abs(kx.item() - (12.5 / 8 - 1)) < 1e-3 and abs(ky.item() - (4.5 / 8 - 1)) < 1e-3
+    # TorchScript stepper = eager model, with keypoints.
+    path = tmp_path / "stepper.ts"
+    rssm.script_stepper(m).save(str(path))
+    first, views = frames[:1], torch.rand(1, 4, 3) * 30
+    torch.manual_seed(3)
+    eager = rssm.rollout(rssm.Stepper(m), first, views)
+    torch.manual_seed(3)
+    assert torch.allclose(eager, rssm.rollout(torch.jit.load(str(path)), first, views), atol=1e-5)
+    assert not any("keypoints" in k for k in rssm.Rssm(DEFAULTS).state_dict())
+    with pytest.raises(DbbError, match="keypoints"):
+        replace(DEFAULTS, keypoints=-1).validate()
