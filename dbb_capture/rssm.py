@@ -444,15 +444,9 @@ class Encoder(nn.Module):
                           if cfg.keypoints > 0 else None)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        x = x - 0.5
-        kp = x.new_zeros(x.shape[0], 0)
-        i = 0
-        for layer in self.convs:
-            x = layer(x)
-            if i == 1 and self.keypoints is not None:
-                kp = self.keypoints(x)
-            i += 1
-        return torch.cat([F.silu(self.out(x.flatten(1))), kp], 1)
+        maps = self.features(x)                  # coarsest first: the last is the finest
+        kp = x.new_zeros(x.shape[0], 0) if self.keypoints is None else self.keypoints(maps[-1])
+        return torch.cat([F.silu(self.out(maps[0].flatten(1))), kp], 1)
 
     def features(self, x: torch.Tensor) -> list[torch.Tensor]:
         """Feature maps after each conv, coarsest first: [(B, C, 4, 4), (B, C', 8, 8), ..., (B, c, S/2, S/2)]."""
