@@ -249,6 +249,19 @@ def protocols(run: Path, dataset: Path, samples: int = 8, temperature: float = 1
 
 
 @torch.no_grad()
+def travel(frames: np.ndarray, background: np.ndarray) -> float:
+    """How far what moves travels, in pixels: ``frames`` (T, S, S, C) against a still ``background``
+    (S, S, C), each frame's centroid of its squared difference from the background, the RMS
+    distance of those centroids from their mean. A part that swings across the frame scores its
+    swing; flicker spread over the frame, or a part that shakes in place, scores little (unlike the
+    energy ratio, which counts both as motion)."""
+    d = ((frames.astype(np.float64) - background.astype(np.float64)) ** 2).sum(-1)        # (T, S, S)
+    w = d / np.maximum(d.sum(axis=(1, 2), keepdims=True), 1e-12)
+    c = np.arange(frames.shape[1]) + 0.5
+    cy, cx = (w.sum(2) * c).sum(1), (w.sum(1) * c).sum(1)
+    return float(np.sqrt(((cy - cy.mean()) ** 2 + (cx - cx.mean()) ** 2).mean()))
+
+
 def motion(run: Path, dataset: Path, still: dict, temperatures: list[float] = (0.0, 1.0, 2.0), samples: int = 3,
            model: rssm.Rssm | None = None) -> dict:
     """Where the still-view motion goes. ``still`` as :func:`still_truth` (``first`` (S, S, 4) uint8,
@@ -259,11 +272,14 @@ def motion(run: Path, dataset: Path, still: dict, temperatures: list[float] = (0
     temperature 1, seed 0), the ratio per open-loop step 1..10 (step 1 from the context frame).
 
     A rollout whose motion comes from the deterministic path moves at temperature 0; one whose
-    motion is only the prior's noise freezes there and moves in proportion to the temperature."""
+    motion is only the prior's noise freezes there and moves in proportion to the temperature.
+    ``travel_px`` per rollout (:func:`travel`, against the truth's per-pixel median): whether the
+    motion carries a part across the frame, beside the truth's."""
     model = (model if model is not None else rssm.load_model(run)).eval()
     truth = rssm._pm_np(still["truth"])
     n = len(truth)
     t_e = np.abs(np.diff(truth.astype(np.float64), axis=0)).mean(axis=(1, 2, 3))       # (n - 1,)
+    background = np.median(truth, axis=0)
     blocks = [(a, b) for a, b in ((0, 9), (9, 29), (29, 74), (74, n - 1)) if b <= n - 1 and a < b]
     f0 = torch.from_numpy(still["first"][None]).permute(0, 3, 1, 2).float() / 255.0
     views = torch.from_numpy(np.asarray(still["view"], np.float32)[None, None]).expand(-1, n + 1, -1).contiguous()
@@ -277,9 +293,11 @@ def motion(run: Path, dataset: Path, still: dict, temperatures: list[float] = (0
             coh = rssm.motion_coherence(long)
             rows.append({"ratio": [round(float(p_e[a:b].mean() / t_e[a:b].mean()), 3) for a, b in blocks]
                          + [round(float(p_e.mean() / t_e.mean()), 3)],
-                         "coherence": None if coh is None else round(coh, 3)})
+                         "coherence": None if coh is None else round(coh, 3),
+                         "travel_px": round(travel(long, background), 2)})
         out["per_temperature"][f"{temp:g}"] = rows
     out["truth_coherence"] = round(rssm.motion_coherence(truth), 3)
+    out["truth_travel_px"] = round(travel(truth, background), 2)
     data = rssm.load_sequences(dataset, model.cfg.size)
     starts = data.starts("test")[:64]
     x, v = rssm._batch(data, starts, torch.device("cpu"))                              # premultiplied

@@ -142,6 +142,13 @@ class RssmConfig:
                                    # (SpatialSoftmax): the flattened conv stack all but ignores a part a few
                                    # pixels wide (a 5-px ball moves its embedding by ~1e-5), a keypoint
                                    # follows it across the frame
+    keypoint_scale: float = 0.0    # > 0 (needs keypoints): weight of predicting each frame's keypoints
+                                   # (detached) from its state (h, z): the posterior's at every filtering
+                                   # step, the prior samples' along the open loop; a target the warp's
+                                   # vanishing gradient cannot hide, so z carries where the part is and
+                                   # the prior learns how it moves
+    keypoints_frozen: bool = False  # the keypoint layer keeps its initial weights (a learned one may
+                                   # spread its softmax until it no longer follows the part)
 
     def validate(self) -> None:
         if self.size not in SIZES:
@@ -149,6 +156,8 @@ class RssmConfig:
         for f in ("deter", "stoch", "hidden", "embed", "enc_depth", "dec_depth", "view_freqs"):
             if getattr(self, f) < 1:
                 raise DbbError(f"RSSM {f} must be positive")
+        if self.keypoint_scale > 0 and self.keypoints < 1:
+            raise DbbError("RSSM keypoint_scale needs keypoints > 0")
         if self.compose not in ("copy3", "blend", "accum"):
             raise DbbError(f"RSSM compose must be copy3, blend or accum, not {self.compose!r}")
         if self.compose == "accum" and not self.skip:
@@ -644,6 +653,11 @@ class Rssm(nn.Module):
         self.prior = nn.Sequential(nn.Linear(cfg.deter, cfg.hidden), nn.SiLU(), nn.Linear(cfg.hidden, 2 * cfg.stoch))
         self.post = nn.Sequential(nn.Linear(cfg.deter + cfg.embed + 2 * cfg.keypoints + 4 * cfg.view_freqs, cfg.hidden), nn.SiLU(),
                                   nn.Linear(cfg.hidden, 2 * cfg.stoch))
+        # Training only (keypoint_scale): the keypoints of a state's frame; None keeps old runs loadable.
+        self.kp_head = (nn.Sequential(nn.Linear(cfg.deter + cfg.stoch, cfg.hidden), nn.SiLU(),
+                                      nn.Linear(cfg.hidden, 2 * cfg.keypoints)) if cfg.keypoint_scale > 0 else None)
+        if cfg.keypoints_frozen and self.encoder.keypoints is not None:
+            self.encoder.keypoints.requires_grad_(False)
 
     # -- pieces shared by training and the stepper
     def transition(self, h: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
@@ -973,6 +987,14 @@ def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[to
             py = py + pyramid_err(ol_x, copies(x), cfg.pyramid_levels)
         loss = loss + cfg.pyramid_scale * py
         parts["pyramid"] = py.item()
+    if model.kp_head is not None:
+        # Where the keypoints are, from the filtering states and from the open loop's prior samples.
+        kp = emb[:, :, cfg.embed:].detach()
+        kf = model.kp_head(torch.cat([torch.stack(hs, 1), torch.stack(zs, 1)], -1))
+        ko = model.kp_head(torch.cat([torch.stack(ol_h, 1), torch.stack(ol_z, 1)], -1))
+        kerr = ((kf - kp) ** 2).sum(-1).mean() + ((ko - kp[:, k + 1:].repeat(K, 1, 1)) ** 2).sum(-1).mean()
+        loss = loss + cfg.keypoint_scale * kerr
+        parts["keypoints"] = kerr.item()
     if ol_x is not None and cfg.energy_scale > 0 and len(oi) > 1 and int(oi[-1] - oi[0]) == len(oi) - 1:
         # consecutive frames only
         en = energy_match(ol_x[:B * len(di)].view(B, len(di), *x.shape[2:])[:, n0:], x[:, oi])

@@ -1021,3 +1021,39 @@ def test_keypoints_follow_a_small_part_the_flattened_embedding_hardly_sees(tmp_p
     assert not any("keypoints" in k for k in rssm.Rssm(DEFAULTS).state_dict())
     with pytest.raises(DbbError, match="keypoints"):
         replace(DEFAULTS, keypoints=-1).validate()
+
+
+def test_keypoint_loss_makes_the_state_say_where_the_spot_is():
+    """keypoint_scale: the state (h, z) is trained to give its frame's keypoints, the posterior's at
+    each filtering step and the prior samples' along the open loop; a frozen keypoint layer takes
+    no gradient, and a few steps on spot sequences bring that error down."""
+    torch.manual_seed(0)
+    cfg = replace(DEFAULTS, keypoints=4, keypoint_scale=10.0, keypoints_frozen=True)
+    m = rssm.Rssm(cfg)
+    x = torch.full((4, 11, 4, 32, 32), 0.6)
+    x[:, :, 3] = 1.0
+    for b in range(4):                       # a spot that travels, from a different column per sequence
+        for t in range(11):
+            c = (3 * b + 2 * t) % 28
+            x[b, t, :3, 14:18, c:c + 4] = torch.tensor([0.9, 0.1, 0.1])[:, None, None]
+    x = rssm.premultiply(x)
+    v = torch.zeros(4, 11, 3)
+    loss, parts = rssm.sequence_loss(m, x, v)
+    loss.backward()
+    assert "keypoints" in parts and parts["keypoints"] > 0
+    assert all(p.grad is None for p in m.encoder.keypoints.parameters())
+    for part in (m.kp_head, m.post, m.prior, m.gru):
+        assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in part.parameters())
+    opt = torch.optim.Adam([p for p in m.parameters() if p.requires_grad], 3e-3)
+    for _ in range(70):
+        opt.zero_grad()
+        loss, parts = rssm.sequence_loss(m, x, v)
+        loss.backward()
+        opt.step()
+    # Below what a state that knows nothing scores (the targets' variance, filtering + open loop).
+    with torch.no_grad():
+        kp = m.encoder(x.flatten(0, 1))[:, cfg.embed:]
+    assert parts["keypoints"] < 0.5 * 2 * kp.var(0).sum().item()
+    assert "kp_head" not in "".join(rssm.Rssm(replace(DEFAULTS, keypoints=4)).state_dict())
+    with pytest.raises(DbbError, match="keypoint_scale"):
+        replace(DEFAULTS, keypoint_scale=1.0).validate()
