@@ -234,6 +234,9 @@ class TrainConfig:
                                    # .<RUN>.snapshots/ beside the run (to study a run's course afterwards)
     val_min_energy: float = 0.7    # selection only among models whose open loop on the held-out windows
                                    # moves at least this fraction of the truth (no frozen model wins)
+    dynamics_steps: int = 0        # > 0: after each step, this many more on fresh windows that train the
+                                   # transition and prior alone (latent_loss: posteriors fixed, nothing
+                                   # decoded), so the dynamics get many updates for each costly one
 
     def validate(self) -> None:
         bad = set(self.augment.split(",")) - {"none", "flip", "reverse"}
@@ -988,11 +991,7 @@ def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[to
         loss = loss + cfg.pyramid_scale * py
         parts["pyramid"] = py.item()
     if model.kp_head is not None:
-        # Where the keypoints are, from the filtering states and from the open loop's prior samples.
-        kp = emb[:, :, cfg.embed:].detach()
-        kf = model.kp_head(torch.cat([torch.stack(hs, 1), torch.stack(zs, 1)], -1))
-        ko = model.kp_head(torch.cat([torch.stack(ol_h, 1), torch.stack(ol_z, 1)], -1))
-        kerr = ((kf - kp) ** 2).sum(-1).mean() + ((ko - kp[:, k + 1:].repeat(K, 1, 1)) ** 2).sum(-1).mean()
+        kerr = _keypoint_err(model, emb, hs, zs, ol_h, ol_z, k)
         loss = loss + cfg.keypoint_scale * kerr
         parts["keypoints"] = kerr.item()
     if ol_x is not None and cfg.energy_scale > 0 and len(oi) > 1 and int(oi[-1] - oi[0]) == len(oi) - 1:
@@ -1001,6 +1000,60 @@ def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[to
         loss = loss + cfg.energy_scale * en
         parts["energy"] = en.item()
     parts["loss"] = loss.item()
+    return loss, parts
+
+
+def _keypoint_err(model: Rssm, emb: torch.Tensor, hs: list[torch.Tensor], zs: list[torch.Tensor],
+                  ol_h: list[torch.Tensor], ol_z: list[torch.Tensor], k: int) -> torch.Tensor:
+    """``keypoint_scale``'s error: the frames' keypoints (``emb`` (B, T+1, embed + 2K), detached)
+    against the head's reading of the filtering states ``hs``/``zs`` (T+1 of (B, .)) and of the open
+    loop's ``ol_h``/``ol_z`` from frame ``k`` (T - k of (R * B, .), R copies of the batch)."""
+    kp = emb[:, :, model.cfg.embed:].detach()
+    kf = model.kp_head(torch.cat([torch.stack(hs, 1), torch.stack(zs, 1)], -1))
+    ko = model.kp_head(torch.cat([torch.stack(ol_h, 1), torch.stack(ol_z, 1)], -1))
+    reps = ko.shape[0] // kp.shape[0]
+    return ((kf - kp) ** 2).sum(-1).mean() + ((ko - kp[:, k + 1:].repeat(reps, 1, 1)) ** 2).sum(-1).mean()
+
+
+def latent_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[torch.Tensor, dict]:
+    """The prior's share of :func:`sequence_loss` alone, with the encoder and posterior held fixed
+    and nothing decoded (``TrainConfig.dynamics_steps``): the dynamics KL along the filtering
+    states, latent overshooting along the open loop and (``keypoint_scale``) the keypoints read from
+    both. Same arguments as :func:`sequence_loss`; a fraction of its cost."""
+    cfg = model.cfg
+    B, T1 = x.shape[:2]
+    pe = view_encoding(views, cfg.view_freqs)
+    with torch.no_grad():
+        emb = model.encoder(x.flatten(0, 1)).view(B, T1, -1)
+    h, z = x.new_zeros(B, cfg.deter), None
+    hs, zs, post, dyn = [], [], [], []
+    for t in range(T1):
+        if z is not None:
+            h = model.transition(h, z)
+        pm, ps = model.prior_stats(h)
+        with torch.no_grad():
+            qm, qs = model.post_stats(h, emb[:, t], pe[:, t])
+        z = qm + qs * torch.randn_like(qs)
+        hs.append(h)
+        zs.append(z)
+        post.append((qm, qs))
+        dyn.append(_kl(qm, qs, pm, ps).mean())
+    k = min(max(cfg.open_loop_from, 0), T1 - 2)
+    ho, zo, ol_h, ol_z, over = hs[k], zs[k], [], [], []
+    for t in range(k + 1, T1):
+        ho = model.transition(ho, zo)
+        pm, ps = model.prior_stats(ho)
+        zo = pm + cfg.open_loop_temperature * ps * torch.randn_like(ps)
+        ol_h.append(ho)
+        ol_z.append(zo)
+        over.append(_kl(*post[t], pm, ps).mean())
+    d, o = torch.stack(dyn).mean(), torch.stack(over).mean()
+    loss = cfg.kl_scale * cfg.kl_balance * d + cfg.overshoot_scale * o
+    parts = {"kl_dyn": d.item(), "overshoot": o.item()}
+    if model.kp_head is not None:
+        kerr = _keypoint_err(model, emb, hs, zs, ol_h, ol_z, k)
+        loss = loss + cfg.keypoint_scale * kerr
+        parts["keypoints"] = kerr.item()
     return loss, parts
 
 
@@ -1443,6 +1496,15 @@ def _train_loop(state: TrainState, data: SequenceData, tcfg: TrainConfig, ckpt: 
                 for g in state.opt.param_groups:
                     g["lr"] = lr_at(tcfg, _fraction(state, tcfg))
             state.opt.step()
+            for _ in range(tcfg.dynamics_steps):
+                x, v = augment(*_batch(data, starts[rng.integers(0, len(starts), tcfg.batch)], device, length),
+                               tcfg.augment, rng)
+                dl = latent_loss(model, x, v)[0]
+                state.opt.zero_grad(set_to_none=True)
+                if bool(torch.isfinite(dl)):
+                    dl.backward()
+                    if bool(torch.isfinite(torch.nn.utils.clip_grad_norm_(model.parameters(), tcfg.grad_clip))):
+                        state.opt.step()
             if tcfg.ema > 0.0:
                 state.update_ema(tcfg.ema)
             in_a_row = 0

@@ -1057,3 +1057,26 @@ def test_keypoint_loss_makes_the_state_say_where_the_spot_is():
     assert "kp_head" not in "".join(rssm.Rssm(replace(DEFAULTS, keypoints=4)).state_dict())
     with pytest.raises(DbbError, match="keypoint_scale"):
         replace(DEFAULTS, keypoint_scale=1.0).validate()
+
+
+def test_dynamics_steps_train_the_transition_and_prior_alone(data):
+    """latent_loss trains only the transition, the prior (and the keypoint head): after one step
+    with dynamics_steps the encoder, posterior and decoder are those of a run without them, the
+    dynamics are not."""
+    x = torch.rand(2, 11, 4, 32, 32)
+    v = torch.rand(2, 11, 3) * 40
+    m = rssm.Rssm(replace(SMALL, keypoints=4, keypoint_scale=1.0))
+    loss, parts = rssm.latent_loss(m, x, v)
+    loss.backward()
+    assert set(parts) == {"kl_dyn", "overshoot", "keypoints"} and math.isfinite(loss.item())
+    trained = {n.split(".")[0] for n, p in m.named_parameters() if p.grad is not None and p.grad.abs().sum() > 0}
+    assert trained == {"z_in", "gru", "prior", "kp_head"}
+    runs = {}
+    for extra in (0, 3):
+        torch.manual_seed(0)
+        m = rssm.Rssm(SMALL)
+        tc = rssm.TrainConfig(steps=1, batch=2, dynamics_steps=extra, ema=0.0)
+        runs[extra] = rssm.train(rssm.TrainState(m, rssm._optimizer(m, tc)), data, tc).model.state_dict()
+    for name, w in runs[0].items():
+        same = torch.equal(w, runs[3][name])
+        assert same == (name.split(".")[0] not in ("z_in", "gru", "prior")), name
