@@ -919,16 +919,7 @@ def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[to
     # a still, averaged frame: the model learns to stop. From k = 1 the posterior has seen
     # frames 0 and 1 (the direction is in z_1) and the open loop learns sustained motion; the
     # run time samples z_1 from the prior, which the dynamics KL trains to cover those posteriors.
-    ho, zo = hs[k].repeat(K, 1), zs[k].repeat(K, 1)
-    ol_h, ol_z, over = [], [], []
-    for t in range(k + 1, T1):
-        ho = model.transition(ho, zo)
-        pm, ps = model.prior_stats(ho)
-        zo = pm + cfg.open_loop_temperature * ps * torch.randn_like(ps)
-        ol_h.append(ho)
-        ol_z.append(zo)
-        over.append(_kl(post_m[t].detach().repeat(K, 1), post_s[t].detach().repeat(K, 1), pm, ps).mean())
-    overshoot = torch.stack(over).mean()
+    ol_h, ol_z, overshoot = _open_loop(model, hs[k], zs[k], post_m, post_s, k, K)
     oi = torch.arange(k + 1, T1, device=x.device) if accum else _decoded(T1, cfg.decode_frames, k + 1, x.device)
     dh, dz, di = torch.stack(ol_h, 1)[:, oi - k - 1], torch.stack(ol_z, 1)[:, oi - k - 1], oi
     n0 = 0
@@ -1003,6 +994,24 @@ def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[to
     return loss, parts
 
 
+def _open_loop(model: Rssm, h: torch.Tensor, z: torch.Tensor, post_m: list[torch.Tensor],
+               post_s: list[torch.Tensor], k: int, reps: int = 1) -> tuple[list, list, torch.Tensor]:
+    """The open loop from the filtering state (``h``, ``z``) (B, .) of frame ``k``: prior samples
+    only, ``reps`` copies of the batch (copy-major), to the last of the posteriors ``post_m``/``post_s``
+    (T+1 of (B, stoch)). Returns its states (T - k of (reps * B, .) each) and the latent
+    overshooting term (the posteriors, detached, against its priors)."""
+    ho, zo = h.repeat(reps, 1), z.repeat(reps, 1)
+    ol_h, ol_z, over = [], [], []
+    for t in range(k + 1, len(post_m)):
+        ho = model.transition(ho, zo)
+        pm, ps = model.prior_stats(ho)
+        zo = pm + model.cfg.open_loop_temperature * ps * torch.randn_like(ps)
+        ol_h.append(ho)
+        ol_z.append(zo)
+        over.append(_kl(post_m[t].detach().repeat(reps, 1), post_s[t].detach().repeat(reps, 1), pm, ps).mean())
+    return ol_h, ol_z, torch.stack(over).mean()
+
+
 def _keypoint_err(model: Rssm, emb: torch.Tensor, hs: list[torch.Tensor], zs: list[torch.Tensor],
                   ol_h: list[torch.Tensor], ol_z: list[torch.Tensor], k: int) -> torch.Tensor:
     """``keypoint_scale``'s error: the frames' keypoints (``emb`` (B, T+1, embed + 2K), detached)
@@ -1026,7 +1035,7 @@ def latent_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[torc
     with torch.no_grad():
         emb = model.encoder(x.flatten(0, 1)).view(B, T1, -1)
     h, z = x.new_zeros(B, cfg.deter), None
-    hs, zs, post, dyn = [], [], [], []
+    hs, zs, post_m, post_s, dyn = [], [], [], [], []
     for t in range(T1):
         if z is not None:
             h = model.transition(h, z)
@@ -1036,18 +1045,12 @@ def latent_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[torc
         z = qm + qs * torch.randn_like(qs)
         hs.append(h)
         zs.append(z)
-        post.append((qm, qs))
+        post_m.append(qm)
+        post_s.append(qs)
         dyn.append(_kl(qm, qs, pm, ps).mean())
     k = min(max(cfg.open_loop_from, 0), T1 - 2)
-    ho, zo, ol_h, ol_z, over = hs[k], zs[k], [], [], []
-    for t in range(k + 1, T1):
-        ho = model.transition(ho, zo)
-        pm, ps = model.prior_stats(ho)
-        zo = pm + cfg.open_loop_temperature * ps * torch.randn_like(ps)
-        ol_h.append(ho)
-        ol_z.append(zo)
-        over.append(_kl(*post[t], pm, ps).mean())
-    d, o = torch.stack(dyn).mean(), torch.stack(over).mean()
+    ol_h, ol_z, o = _open_loop(model, hs[k], zs[k], post_m, post_s, k)
+    d = torch.stack(dyn).mean()
     loss = cfg.kl_scale * cfg.kl_balance * d + cfg.overshoot_scale * o
     parts = {"kl_dyn": d.item(), "overshoot": o.item()}
     if model.kp_head is not None:
