@@ -145,8 +145,8 @@ class RssmConfig:
     keypoint_scale: float = 0.0    # > 0 (needs keypoints): weight of predicting each frame's keypoints
                                    # (detached) from its state (h, z): the posterior's at every filtering
                                    # step, the prior samples' along the open loop; a target the warp's
-                                   # vanishing gradient cannot hide, so z carries where the part is and
-                                   # the prior learns how it moves
+                                   # vanishing gradient cannot hide, so z carries where the part is (on
+                                   # the pendulum it does; the prior still lacks momentum: docs, 15th round)
     keypoints_frozen: bool = False  # the keypoint layer keeps its initial weights (a learned one may
                                    # spread its softmax until it no longer follows the part)
 
@@ -237,6 +237,7 @@ class TrainConfig:
     dynamics_steps: int = 0        # > 0: after each step, this many more on fresh windows that train the
                                    # transition and prior alone (latent_loss: posteriors fixed, nothing
                                    # decoded), so the dynamics get many updates for each costly one
+                                   # (a non-finite one is skipped and counted; no gain on the pendulum)
 
     def validate(self) -> None:
         bad = set(self.augment.split(",")) - {"none", "flip", "reverse"}
@@ -1484,9 +1485,12 @@ def _train_loop(state: TrainState, data: SequenceData, tcfg: TrainConfig, ckpt: 
     last_ckpt = time.perf_counter()
     t_prev = time.perf_counter()
     in_a_row = 0
-    while not _done(state, tcfg):
+    def draw() -> tuple[torch.Tensor, torch.Tensor]:
         pick = starts[rng.integers(0, len(starts), tcfg.batch)]
-        x, v = augment(*_batch(data, pick, device, length), tcfg.augment, rng)
+        return augment(*_batch(data, pick, device, length), tcfg.augment, rng)
+
+    while not _done(state, tcfg):
+        x, v = draw()
         loss, parts = sequence_loss(model, x, v)
         state.opt.zero_grad(set_to_none=True)
         ok = bool(torch.isfinite(loss))
@@ -1500,14 +1504,16 @@ def _train_loop(state: TrainState, data: SequenceData, tcfg: TrainConfig, ckpt: 
                     g["lr"] = lr_at(tcfg, _fraction(state, tcfg))
             state.opt.step()
             for _ in range(tcfg.dynamics_steps):
-                x, v = augment(*_batch(data, starts[rng.integers(0, len(starts), tcfg.batch)], device, length),
-                               tcfg.augment, rng)
-                dl = latent_loss(model, x, v)[0]
+                dl = latent_loss(model, *draw())[0]
                 state.opt.zero_grad(set_to_none=True)
-                if bool(torch.isfinite(dl)):
+                good = bool(torch.isfinite(dl))
+                if good:
                     dl.backward()
-                    if bool(torch.isfinite(torch.nn.utils.clip_grad_norm_(model.parameters(), tcfg.grad_clip))):
-                        state.opt.step()
+                    good = bool(torch.isfinite(torch.nn.utils.clip_grad_norm_(model.parameters(), tcfg.grad_clip)))
+                if good:
+                    state.opt.step()
+                else:
+                    state.bad_steps += 1
             if tcfg.ema > 0.0:
                 state.update_ema(tcfg.ema)
             in_a_row = 0
