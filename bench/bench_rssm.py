@@ -248,7 +248,6 @@ def protocols(run: Path, dataset: Path, samples: int = 8, temperature: float = 1
                                       "best_of_samples": round(float(per.max(0).mean() - copy), 3)}}
 
 
-@torch.no_grad()
 def travel(frames: np.ndarray, background: np.ndarray) -> float:
     """How far what moves travels, in pixels: ``frames`` (T, S, S, C) against a still ``background``
     (S, S, C), each frame's centroid of its squared difference from the background, the RMS
@@ -262,6 +261,7 @@ def travel(frames: np.ndarray, background: np.ndarray) -> float:
     return float(np.sqrt(((cy - cy.mean()) ** 2 + (cx - cx.mean()) ** 2).mean()))
 
 
+@torch.no_grad()
 def motion(run: Path, dataset: Path, still: dict, temperatures: list[float] = (0.0, 1.0, 2.0), samples: int = 3,
            model: rssm.Rssm | None = None) -> dict:
     """Where the still-view motion goes. ``still`` as :func:`still_truth` (``first`` (S, S, 4) uint8,
