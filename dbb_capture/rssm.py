@@ -238,6 +238,10 @@ class TrainConfig:
                                    # transition and prior alone (latent_loss: posteriors fixed, nothing
                                    # decoded), so the dynamics get many updates for each costly one
                                    # (a non-finite one is skipped and counted; no gain on the pendulum)
+    dynamics_horizon: int | None = None  # the latent-only steps' windows (1 context + this many frames, as
+                                   # `horizon`); None: the same windows as the full steps. Nothing is
+                                   # decoded there, so windows many times longer cost little: the open loop
+                                   # learns to go on (momentum) beyond the decoded horizon
 
     def validate(self) -> None:
         bad = set(self.augment.split(",")) - {"none", "flip", "reverse"}
@@ -253,6 +257,9 @@ class TrainConfig:
             raise DbbError(f"weight_decay must be at least 0, not {self.weight_decay}")
         if not 0.0 <= self.ema < 1.0:
             raise DbbError(f"ema must be in [0, 1), not {self.ema}")
+        for name in ("horizon", "dynamics_horizon"):
+            if getattr(self, name) is not None and getattr(self, name) < 1:
+                raise DbbError(f"{name} must be at least 1, not {getattr(self, name)}")
 
 
 def leak_at_frame_rate(cfg: RssmConfig, fps: float | None) -> RssmConfig:
@@ -1485,9 +1492,15 @@ def _train_loop(state: TrainState, data: SequenceData, tcfg: TrainConfig, ckpt: 
     last_ckpt = time.perf_counter()
     t_prev = time.perf_counter()
     in_a_row = 0
-    def draw() -> tuple[torch.Tensor, torch.Tensor]:
-        pick = starts[rng.integers(0, len(starts), tcfg.batch)]
-        return augment(*_batch(data, pick, device, length), tcfg.augment, rng)
+    lat_starts, lat_length = starts, length
+    if tcfg.dynamics_steps and tcfg.dynamics_horizon is not None:
+        lat_starts, lat_length = training_windows(data, tcfg.dynamics_horizon)
+        if val is not None:              # the held-out frames stay out of these windows too
+            lat_starts = validation_split(data, lat_starts, lat_length, tcfg.val_fraction)[0]
+
+    def draw(pool: np.ndarray = starts, n: int = length) -> tuple[torch.Tensor, torch.Tensor]:
+        pick = pool[rng.integers(0, len(pool), tcfg.batch)]
+        return augment(*_batch(data, pick, device, n), tcfg.augment, rng)
 
     while not _done(state, tcfg):
         x, v = draw()
@@ -1504,7 +1517,7 @@ def _train_loop(state: TrainState, data: SequenceData, tcfg: TrainConfig, ckpt: 
                     g["lr"] = lr_at(tcfg, _fraction(state, tcfg))
             state.opt.step()
             for _ in range(tcfg.dynamics_steps):
-                dl = latent_loss(model, *draw())[0]
+                dl = latent_loss(model, *draw(lat_starts, lat_length))[0]
                 state.opt.zero_grad(set_to_none=True)
                 good = bool(torch.isfinite(dl))
                 if good:

@@ -1080,3 +1080,20 @@ def test_dynamics_steps_train_the_transition_and_prior_alone(data):
     for name, w in runs[0].items():
         same = torch.equal(w, runs[3][name])
         assert same == (name.split(".")[0] not in ("z_in", "gru", "prior")), name
+
+
+def test_dynamics_horizon_gives_the_latent_steps_longer_windows(data, monkeypatch):
+    """The latent-only steps read windows of 1 + dynamics_horizon frames (cut from consecutive
+    training frames), the full steps keep the dataset's; a horizon below 1 is refused."""
+    seen = {"full": [], "latent": []}
+    full, latent = rssm.sequence_loss, rssm.latent_loss
+    monkeypatch.setattr(rssm, "sequence_loss", lambda m, x, v: seen["full"].append(x.shape[1]) or full(m, x, v))
+    monkeypatch.setattr(rssm, "latent_loss", lambda m, x, v: seen["latent"].append(x.shape[1]) or latent(m, x, v))
+    long_starts, long_len = rssm.training_windows(data, 12)
+    assert long_len > data.length and len(long_starts) > 0
+    tc = rssm.TrainConfig(steps=2, batch=2, dynamics_steps=2, dynamics_horizon=12, ema=0.0)
+    m = rssm.Rssm(SMALL)
+    rssm.train(rssm.TrainState(m, rssm._optimizer(m, tc)), data, tc)
+    assert seen == {"full": [data.length] * 2, "latent": [long_len] * 4}
+    with pytest.raises(rssm.DbbError, match="dynamics_horizon"):
+        rssm.TrainConfig(dynamics_horizon=0).validate()
