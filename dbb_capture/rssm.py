@@ -149,6 +149,9 @@ class RssmConfig:
                                    # the pendulum it does; the prior still lacks momentum: docs, 15th round)
     keypoints_frozen: bool = False  # the keypoint layer keeps its initial weights (a learned one may
                                    # spread its softmax until it no longer follows the part)
+    keypoint_open_loop: bool = True  # the keypoint error also reads the open loop's states; False: the
+                                   # filtering states only (a regression along a short open loop pulls
+                                   # the prior toward the mean: its forecasts settle)
 
     def validate(self) -> None:
         if self.size not in SIZES:
@@ -1023,10 +1026,13 @@ def _open_loop(model: Rssm, h: torch.Tensor, z: torch.Tensor, post_m: list[torch
 def _keypoint_err(model: Rssm, emb: torch.Tensor, hs: list[torch.Tensor], zs: list[torch.Tensor],
                   ol_h: list[torch.Tensor], ol_z: list[torch.Tensor], k: int) -> torch.Tensor:
     """``keypoint_scale``'s error: the frames' keypoints (``emb`` (B, T+1, embed + 2K), detached)
-    against the head's reading of the filtering states ``hs``/``zs`` (T+1 of (B, .)) and of the open
-    loop's ``ol_h``/``ol_z`` from frame ``k`` (T - k of (R * B, .), R copies of the batch)."""
+    against the head's reading of the filtering states ``hs``/``zs`` (T+1 of (B, .)) and, with
+    ``keypoint_open_loop``, of the open loop's ``ol_h``/``ol_z`` from frame ``k`` (T - k of
+    (R * B, .), R copies of the batch)."""
     kp = emb[:, :, model.cfg.embed:].detach()
     kf = model.kp_head(torch.cat([torch.stack(hs, 1), torch.stack(zs, 1)], -1))
+    if not model.cfg.keypoint_open_loop or not ol_h:
+        return ((kf - kp) ** 2).sum(-1).mean()
     ko = model.kp_head(torch.cat([torch.stack(ol_h, 1), torch.stack(ol_z, 1)], -1))
     reps = ko.shape[0] // kp.shape[0]
     return ((kf - kp) ** 2).sum(-1).mean() + ((ko - kp[:, k + 1:].repeat(reps, 1, 1)) ** 2).sum(-1).mean()
