@@ -152,6 +152,9 @@ class RssmConfig:
     keypoint_open_loop: bool = True  # the keypoint error also reads the open loop's states; False: the
                                    # filtering states only (a regression along a short open loop pulls
                                    # the prior toward the mean: its forecasts settle)
+    keypoint_prior: bool = False   # the keypoint error also reads each filtering step's prior mean
+                                   # (h_t, its forecast before frame t is seen): one-step forecasts of
+                                   # where the part goes, teacher forced, so h carries its velocity
 
     def validate(self) -> None:
         if self.size not in SIZES:
@@ -873,12 +876,13 @@ def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[to
                             [rep(c) for c in ctx0], rep(x[:, 0]), rep(pe[:, 0]))
 
     h = x.new_zeros(B, cfg.deter)
-    hs, zs, zd, kl_dyn, kl_rep, post_m, post_s = [], [], [], [], [], [], []
+    hs, zs, zd, kl_dyn, kl_rep, post_m, post_s, prior_m = [], [], [], [], [], [], [], []
     z = None
     for t in range(T1):                                  # filtering: posterior at every step
         if z is not None:
             h = model.transition(h, z)
         pm, ps = model.prior_stats(h)
+        prior_m.append(pm)
         qm, qs = model.post_stats(h, emb[:, t], pe[:, t])
         z = qm + qs * torch.randn_like(qs)
         hs.append(h)
@@ -993,7 +997,7 @@ def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[to
         loss = loss + cfg.pyramid_scale * py
         parts["pyramid"] = py.item()
     if model.kp_head is not None:
-        kerr = _keypoint_err(model, emb, hs, zs, ol_h, ol_z, k)
+        kerr = _keypoint_err(model, emb, hs, zs, ol_h, ol_z, k, prior_m)
         loss = loss + cfg.keypoint_scale * kerr
         parts["keypoints"] = kerr.item()
     if ol_x is not None and cfg.energy_scale > 0 and len(oi) > 1 and int(oi[-1] - oi[0]) == len(oi) - 1:
@@ -1024,18 +1028,24 @@ def _open_loop(model: Rssm, h: torch.Tensor, z: torch.Tensor, post_m: list[torch
 
 
 def _keypoint_err(model: Rssm, emb: torch.Tensor, hs: list[torch.Tensor], zs: list[torch.Tensor],
-                  ol_h: list[torch.Tensor], ol_z: list[torch.Tensor], k: int) -> torch.Tensor:
+                  ol_h: list[torch.Tensor], ol_z: list[torch.Tensor], k: int,
+                  prior_m: list[torch.Tensor] | None = None) -> torch.Tensor:
     """``keypoint_scale``'s error: the frames' keypoints (``emb`` (B, T+1, embed + 2K), detached)
     against the head's reading of the filtering states ``hs``/``zs`` (T+1 of (B, .)) and, with
     ``keypoint_open_loop``, of the open loop's ``ol_h``/``ol_z`` from frame ``k`` (T - k of
-    (R * B, .), R copies of the batch)."""
+    (R * B, .), R copies of the batch); with ``keypoint_prior``, of the filtering steps' prior means
+    ``prior_m`` (T+1 of (B, stoch); frame 0's, a forecast from nothing, is left out)."""
     kp = emb[:, :, model.cfg.embed:].detach()
     kf = model.kp_head(torch.cat([torch.stack(hs, 1), torch.stack(zs, 1)], -1))
+    err = ((kf - kp) ** 2).sum(-1).mean()
+    if model.cfg.keypoint_prior and prior_m is not None and len(hs) > 1:
+        kpr = model.kp_head(torch.cat([torch.stack(hs[1:], 1), torch.stack(prior_m[1:], 1)], -1))
+        err = err + ((kpr - kp[:, 1:]) ** 2).sum(-1).mean()
     if not model.cfg.keypoint_open_loop or not ol_h:
-        return ((kf - kp) ** 2).sum(-1).mean()
+        return err
     ko = model.kp_head(torch.cat([torch.stack(ol_h, 1), torch.stack(ol_z, 1)], -1))
     reps = ko.shape[0] // kp.shape[0]
-    return ((kf - kp) ** 2).sum(-1).mean() + ((ko - kp[:, k + 1:].repeat(reps, 1, 1)) ** 2).sum(-1).mean()
+    return err + ((ko - kp[:, k + 1:].repeat(reps, 1, 1)) ** 2).sum(-1).mean()
 
 
 def latent_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[torch.Tensor, dict]:
@@ -1049,11 +1059,12 @@ def latent_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[torc
     with torch.no_grad():
         emb = model.encoder(x.flatten(0, 1)).view(B, T1, -1)
     h, z = x.new_zeros(B, cfg.deter), None
-    hs, zs, post_m, post_s, dyn = [], [], [], [], []
+    hs, zs, post_m, post_s, dyn, prior_m = [], [], [], [], [], []
     for t in range(T1):
         if z is not None:
             h = model.transition(h, z)
         pm, ps = model.prior_stats(h)
+        prior_m.append(pm)
         with torch.no_grad():
             qm, qs = model.post_stats(h, emb[:, t], pe[:, t])
         z = qm + qs * torch.randn_like(qs)
@@ -1068,7 +1079,7 @@ def latent_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[torc
     loss = cfg.kl_scale * cfg.kl_balance * d + cfg.overshoot_scale * o
     parts = {"kl_dyn": d.item(), "overshoot": o.item()}
     if model.kp_head is not None:
-        kerr = _keypoint_err(model, emb, hs, zs, ol_h, ol_z, k)
+        kerr = _keypoint_err(model, emb, hs, zs, ol_h, ol_z, k, prior_m)
         loss = loss + cfg.keypoint_scale * kerr
         parts["keypoints"] = kerr.item()
     return loss, parts

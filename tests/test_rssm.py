@@ -1059,19 +1059,22 @@ def test_keypoint_loss_makes_the_state_say_where_the_spot_is():
         replace(DEFAULTS, keypoint_scale=1.0).validate()
 
 
-def test_keypoint_error_reads_the_open_loop_only_when_asked():
+def test_keypoint_error_reads_the_open_loop_and_the_forecasts_only_when_asked():
     """keypoint_open_loop=False: the keypoint error is the filtering states' alone, so no gradient
-    reaches the open loop through it; True (the default) also scores the open loop's states."""
+    reaches the open loop through it; True (the default) also scores the open loop's states.
+    keypoint_prior=True also scores each filtering step's prior mean (frame 0's excepted)."""
     cfg = replace(DEFAULTS, keypoints=4, keypoint_scale=1.0)
-    for open_loop in (True, False):
-        m = rssm.Rssm(replace(cfg, keypoint_open_loop=open_loop))
+    for open_loop, forecast in ((True, False), (False, False), (False, True)):
+        m = rssm.Rssm(replace(cfg, keypoint_open_loop=open_loop, keypoint_prior=forecast))
         emb = torch.randn(2, 11, cfg.embed + 8)
         hs = [torch.randn(2, cfg.deter, requires_grad=True) for _ in range(11)]
         zs = [torch.randn(2, cfg.stoch, requires_grad=True) for _ in range(11)]
+        pms = [torch.randn(2, cfg.stoch, requires_grad=True) for _ in range(11)]
         ol = [torch.randn(2, n, requires_grad=True) for n in (cfg.deter, cfg.stoch) for _ in range(9)]
-        rssm._keypoint_err(m, emb, hs, zs, ol[:9], ol[9:], 1).backward()
+        rssm._keypoint_err(m, emb, hs, zs, ol[:9], ol[9:], 1, pms).backward()
         assert all(t.grad is not None for t in hs + zs)
         assert all((t.grad is not None) == open_loop for t in ol)
+        assert pms[0].grad is None and all((t.grad is not None) == forecast for t in pms[1:])
 
 
 def test_dynamics_steps_train_the_transition_and_prior_alone(data):
