@@ -248,17 +248,22 @@ def protocols(run: Path, dataset: Path, samples: int = 8, temperature: float = 1
                                       "best_of_samples": round(float(per.max(0).mean() - copy), 3)}}
 
 
-def travel(frames: np.ndarray, background: np.ndarray) -> float:
-    """How far what moves travels, in pixels: ``frames`` (T, S, S, C) against a still ``background``
-    (S, S, C), each frame's centroid of its squared difference from the background, the RMS
-    distance of those centroids from their mean. A part that swings across the frame scores its
-    swing; flicker spread over the frame, or a part that shakes in place, scores little (unlike the
-    energy ratio, which counts both as motion)."""
+def centroids(frames: np.ndarray, background: np.ndarray) -> np.ndarray:
+    """Where each of ``frames`` (T, S, S, C) differs from a still ``background`` (S, S, C): the
+    centroid of its squared difference, (T, 2) as (y, x) in pixels (pixel centres at +0.5)."""
     d = ((frames.astype(np.float64) - background.astype(np.float64)) ** 2).sum(-1)        # (T, S, S)
     w = d / np.maximum(d.sum(axis=(1, 2), keepdims=True), 1e-12)
     c = np.arange(frames.shape[1]) + 0.5
-    cy, cx = (w.sum(2) * c).sum(1), (w.sum(1) * c).sum(1)
-    return float(np.sqrt(((cy - cy.mean()) ** 2 + (cx - cx.mean()) ** 2).mean()))
+    return np.stack([(w.sum(2) * c).sum(1), (w.sum(1) * c).sum(1)], 1)
+
+
+def travel(frames: np.ndarray, background: np.ndarray) -> float:
+    """How far what moves travels, in pixels: ``frames`` (T, S, S, C) against a still ``background``
+    (S, S, C), the RMS distance of the frames' :func:`centroids` from their mean. A part that swings
+    across the frame scores its swing; flicker spread over the frame, or a part that shakes in
+    place, scores little (unlike the energy ratio, which counts both as motion)."""
+    c = centroids(frames, background)
+    return float(np.sqrt(((c - c.mean(0)) ** 2).sum(1).mean()))
 
 
 @torch.no_grad()
