@@ -152,6 +152,9 @@ class RssmConfig:
     keypoint_open_loop: bool = True  # the keypoint error also reads the open loop's states; False: the
                                    # filtering states only (a regression along a short open loop pulls
                                    # the prior toward the mean: its forecasts settle)
+    keypoint_energy: float = 0.0   # > 0: the keypoint error also matches each keypoint's mean step length
+                                   # along the open loop to the frames' (this weight, relative): a
+                                   # regression alone lets a forecast settle, this keeps it moving
     keypoint_prior: bool = False   # the keypoint error also reads each filtering step's prior mean
                                    # (h_t, its forecast before frame t is seen): one-step forecasts of
                                    # where the part goes, teacher forced, so h carries its velocity
@@ -1033,7 +1036,7 @@ def _keypoint_err(model: Rssm, emb: torch.Tensor, hs: list[torch.Tensor], zs: li
     """``keypoint_scale``'s error: the frames' keypoints (``emb`` (B, T+1, embed + 2K), detached)
     against the head's reading of the filtering states ``hs``/``zs`` (T+1 of (B, .)) and, with
     ``keypoint_open_loop``, of the open loop's ``ol_h``/``ol_z`` from frame ``k`` (T - k of
-    (R * B, .), R copies of the batch); with ``keypoint_prior``, of the filtering steps' prior means
+    (R * B, .), R copies of the batch; with ``keypoint_energy``, also its mean step lengths); with ``keypoint_prior``, of the filtering steps' prior means
     ``prior_m`` (T+1 of (B, stoch); frame 0's, a forecast from nothing, is left out)."""
     kp = emb[:, :, model.cfg.embed:].detach()
     kf = model.kp_head(torch.cat([torch.stack(hs, 1), torch.stack(zs, 1)], -1))
@@ -1045,7 +1048,12 @@ def _keypoint_err(model: Rssm, emb: torch.Tensor, hs: list[torch.Tensor], zs: li
         return err
     ko = model.kp_head(torch.cat([torch.stack(ol_h, 1), torch.stack(ol_z, 1)], -1))
     reps = ko.shape[0] // kp.shape[0]
-    return err + ((ko - kp[:, k + 1:].repeat(reps, 1, 1)) ** 2).sum(-1).mean()
+    target = kp[:, k + 1:].repeat(reps, 1, 1)
+    err = err + ((ko - target) ** 2).sum(-1).mean()
+    if model.cfg.keypoint_energy > 0 and ko.shape[1] > 1:
+        step = lambda a: (a[:, 1:] - a[:, :-1]).abs().mean(1)          # (R * B, 2K)
+        err = err + model.cfg.keypoint_energy * ((step(ko) - step(target)) ** 2).sum(-1).mean()
+    return err
 
 
 def latent_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[torch.Tensor, dict]:

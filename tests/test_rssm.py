@@ -1077,6 +1077,31 @@ def test_keypoint_error_reads_the_open_loop_and_the_forecasts_only_when_asked():
         assert pms[0].grad is None and all((t.grad is not None) == forecast for t in pms[1:])
 
 
+def test_keypoint_energy_scores_a_settled_open_loop():
+    """keypoint_energy: an open loop whose keypoints stand still scores more than one that moves as
+    the frames' keypoints do, by the weight times the squared mean step length the frames take."""
+    cfg = replace(DEFAULTS, keypoints=1, keypoint_scale=1.0, keypoint_energy=2.0)
+    m = rssm.Rssm(cfg)
+
+    class FirstTwoOfZ(torch.nn.Module):           # a head that reads its keypoint off z's first two numbers
+        def forward(self, s):
+            return s[..., cfg.deter:cfg.deter + 2]
+
+    m.kp_head = FirstTwoOfZ()
+    track = torch.stack([torch.linspace(-0.5, 0.5, 11), torch.zeros(11)], -1)       # (11, 2): x moves 0.1 a frame
+    emb = torch.cat([torch.zeros(1, 11, cfg.embed), track[None]], -1)
+    state = lambda p: [torch.cat([torch.zeros(1, cfg.deter), p[None], torch.zeros(1, cfg.stoch - 2)], -1)
+                       for p in p]
+    hs, zs = [s[:, :cfg.deter] for s in state(track)], [s[:, cfg.deter:] for s in state(track)]
+    moving = state(track[2:])
+    still = state(track[2:].mean(0).expand(9, 2))
+    err = {name: rssm._keypoint_err(m, emb, hs, zs, [s[:, :cfg.deter] for s in ol], [s[:, cfg.deter:] for s in ol], 1)
+           for name, ol in (("moving", moving), ("still", still))}
+    regression = ((track[2:] - track[2:].mean(0)) ** 2).sum(-1).mean()
+    assert err["moving"].item() == pytest.approx(0.0, abs=1e-6)
+    assert err["still"].item() == pytest.approx(regression.item() + 2.0 * 0.1 ** 2, rel=1e-4)
+
+
 def test_dynamics_steps_train_the_transition_and_prior_alone(data):
     """latent_loss trains only the transition, the prior (and the keypoint head): after one step
     with dynamics_steps the encoder, posterior and decoder are those of a run without them, the
