@@ -151,13 +151,13 @@ class RssmConfig:
                                    # spread its softmax until it no longer follows the part)
     keypoint_open_loop: bool = True  # the keypoint error also reads the open loop's states; False: the
                                    # filtering states only (a regression along a short open loop pulls
-                                   # the prior toward the mean: its forecasts settle)
+                                   # the prior toward the mean; yet on the pendulum off lost motion)
     keypoint_energy: float = 0.0   # > 0: the keypoint error also matches each keypoint's mean step length
                                    # along the open loop to the frames' (this weight, relative): a
                                    # regression alone lets a forecast settle, this keeps it moving
     keypoint_prior: bool = False   # the keypoint error also reads each filtering step's prior mean
                                    # (h_t, its forecast before frame t is seen): one-step forecasts of
-                                   # where the part goes, teacher forced, so h carries its velocity
+                                   # where the part goes, teacher forced (pendulum: no gain, 16th round)
 
     def validate(self) -> None:
         if self.size not in SIZES:
@@ -249,8 +249,8 @@ class TrainConfig:
                                    # (a non-finite one is skipped and counted; no gain on the pendulum)
     dynamics_horizon: int | None = None  # the latent-only steps' windows (1 context + this many frames, as
                                    # `horizon`); None: the same windows as the full steps. Nothing is
-                                   # decoded there, so windows many times longer cost little: the open loop
-                                   # learns to go on (momentum) beyond the decoded horizon
+                                   # decoded there, so windows many times longer cost little (pendulum:
+                                   # 60 and 120 gave less motion than without, 16th round)
 
     def validate(self) -> None:
         bad = set(self.augment.split(",")) - {"none", "flip", "reverse"}
@@ -1034,10 +1034,11 @@ def _keypoint_err(model: Rssm, emb: torch.Tensor, hs: list[torch.Tensor], zs: li
                   ol_h: list[torch.Tensor], ol_z: list[torch.Tensor], k: int,
                   prior_m: list[torch.Tensor] | None = None) -> torch.Tensor:
     """``keypoint_scale``'s error: the frames' keypoints (``emb`` (B, T+1, embed + 2K), detached)
-    against the head's reading of the filtering states ``hs``/``zs`` (T+1 of (B, .)) and, with
+    against the head's reading of the filtering states ``hs``/``zs`` (T+1 of (B, .)); with
     ``keypoint_open_loop``, of the open loop's ``ol_h``/``ol_z`` from frame ``k`` (T - k of
-    (R * B, .), R copies of the batch; with ``keypoint_energy``, also its mean step lengths); with ``keypoint_prior``, of the filtering steps' prior means
-    ``prior_m`` (T+1 of (B, stoch); frame 0's, a forecast from nothing, is left out)."""
+    (R * B, .), R copies of the batch; with ``keypoint_energy``, also its mean step lengths); with
+    ``keypoint_prior``, of the filtering steps' prior means ``prior_m`` (T+1 of (B, stoch); frame
+    0's, a forecast from nothing, is left out)."""
     kp = emb[:, :, model.cfg.embed:].detach()
     kf = model.kp_head(torch.cat([torch.stack(hs, 1), torch.stack(zs, 1)], -1))
     err = ((kf - kp) ** 2).sum(-1).mean()
