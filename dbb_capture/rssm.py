@@ -154,7 +154,8 @@ class RssmConfig:
                                    # the prior toward the mean; yet on the pendulum off lost motion)
     keypoint_energy: float = 0.0   # > 0: the keypoint error also matches each keypoint's mean step length
                                    # along the open loop to the frames' (this weight, relative): a
-                                   # regression alone lets a forecast settle, this keeps it moving
+                                   # regression alone lets a forecast settle (bench/momentum_toy.py;
+                                   # on the pendulum's 16 keypoints no gain, 16th round)
     keypoint_prior: bool = False   # the keypoint error also reads each filtering step's prior mean
                                    # (h_t, its forecast before frame t is seen): one-step forecasts of
                                    # where the part goes, teacher forced (pendulum: no gain, 16th round)
