@@ -262,8 +262,12 @@ def travel(frames: np.ndarray, background: np.ndarray) -> float:
     (S, S, C), the RMS distance of the frames' :func:`centroids` from their mean. A part that swings
     across the frame scores its swing; flicker spread over the frame, or a part that shakes in
     place, scores little (unlike the energy ratio, which counts both as motion)."""
-    c = centroids(frames, background)
-    return float(np.sqrt(((c - c.mean(0)) ** 2).sum(1).mean()))
+    return spread(centroids(frames, background))
+
+
+def spread(points: np.ndarray) -> float:
+    """RMS distance of ``points`` (T, 2) from their mean, in their units."""
+    return float(np.sqrt(((points - points.mean(0)) ** 2).sum(1).mean()))
 
 
 @torch.no_grad()

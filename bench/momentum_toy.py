@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from bench_rssm import centroids
+from bench_rssm import centroids, spread
 from dbb_capture import rssm
 
 
@@ -54,8 +54,7 @@ def run(points: np.ndarray, n_train: int, window: int, context: int, energy: flo
         pred = forecast(cell, head, seq, context)
         loss = ((pred - seq[:, 1:]) ** 2).mean()
         if energy > 0:
-            step_len = lambda a: (a[:, 1:] - a[:, :-1]).abs().mean(1)
-            loss = loss + energy * ((step_len(pred) - step_len(seq[:, 1:])) ** 2).mean()
+            loss = loss + energy * ((rssm.mean_step(pred) - rssm.mean_step(seq[:, 1:])) ** 2).mean()
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -63,9 +62,8 @@ def run(points: np.ndarray, n_train: int, window: int, context: int, energy: flo
         roll = forecast(cell, head, p[None, :horizon + 1], 2)[0].numpy() * std + mean
     truth = points[1:horizon + 1]
     energy_of = lambda a: np.abs(np.diff(a, axis=0)).mean()
-    travel = lambda a: float(np.sqrt(((a - a.mean(0)) ** 2).sum(1).mean()))
     return {"ratio": round(float(energy_of(roll) / energy_of(truth)), 3),
-            "travel_px": round(travel(roll[1:]), 2), "truth_travel_px": round(travel(truth[1:]), 2)}
+            "travel_px": round(spread(roll[1:]), 2), "truth_travel_px": round(spread(truth[1:]), 2)}
 
 
 def main() -> None:

@@ -1031,6 +1031,11 @@ def _open_loop(model: Rssm, h: torch.Tensor, z: torch.Tensor, post_m: list[torch
     return ol_h, ol_z, torch.stack(over).mean()
 
 
+def mean_step(a: torch.Tensor) -> torch.Tensor:
+    """Mean absolute step of trajectories ``a`` (B, T, D) along time: (B, D)."""
+    return (a[:, 1:] - a[:, :-1]).abs().mean(1)
+
+
 def _keypoint_err(model: Rssm, emb: torch.Tensor, hs: list[torch.Tensor], zs: list[torch.Tensor],
                   ol_h: list[torch.Tensor], ol_z: list[torch.Tensor], k: int,
                   prior_m: list[torch.Tensor] | None = None) -> torch.Tensor:
@@ -1053,8 +1058,7 @@ def _keypoint_err(model: Rssm, emb: torch.Tensor, hs: list[torch.Tensor], zs: li
     target = kp[:, k + 1:].repeat(reps, 1, 1)
     err = err + ((ko - target) ** 2).sum(-1).mean()
     if model.cfg.keypoint_energy > 0 and ko.shape[1] > 1:
-        step = lambda a: (a[:, 1:] - a[:, :-1]).abs().mean(1)          # (R * B, 2K)
-        err = err + model.cfg.keypoint_energy * ((step(ko) - step(target)) ** 2).sum(-1).mean()
+        err = err + model.cfg.keypoint_energy * ((mean_step(ko) - mean_step(target)) ** 2).sum(-1).mean()
     return err
 
 

@@ -1090,8 +1090,8 @@ def test_keypoint_energy_scores_a_settled_open_loop():
     m.kp_head = FirstTwoOfZ()
     track = torch.stack([torch.linspace(-0.5, 0.5, 11), torch.zeros(11)], -1)       # (11, 2): x moves 0.1 a frame
     emb = torch.cat([torch.zeros(1, 11, cfg.embed), track[None]], -1)
-    state = lambda p: [torch.cat([torch.zeros(1, cfg.deter), p[None], torch.zeros(1, cfg.stoch - 2)], -1)
-                       for p in p]
+    state = lambda points: [torch.cat([torch.zeros(1, cfg.deter), q[None], torch.zeros(1, cfg.stoch - 2)], -1)
+                            for q in points]
     hs, zs = [s[:, :cfg.deter] for s in state(track)], [s[:, cfg.deter:] for s in state(track)]
     moving = state(track[2:])
     still = state(track[2:].mean(0).expand(9, 2))
