@@ -156,13 +156,16 @@ def cut_crop(image: np.ndarray, cam: CropCamera, src: Intrinsics, src_c2w: np.nd
     """Resample ``image`` (H, W, C) uint8 into the crop (size, size, C); also whether it touched the border.
 
     Pixels outside the source frame are zero (transparent for RGBA). When the crop shrinks the
-    image, it is rendered at ``s`` samples per pixel and box-filtered, so it does not alias.
+    image, it is rendered at ``s`` samples per pixel and box-filtered, so it does not alias. The
+    taps are bicubic: a bilinear tap blurs by ~0.4 source px, ~0.3 crop px where a crop pixel
+    spans few source pixels (low-resolution footage); bicubic gave +0.4 dB on black and on white
+    at 640x480 (docs/benchmarks.md, issue 4, tenth session).
     """
     s = max(1, min(8, math.ceil(cam.window_px / cam.intr.width)))
     mx, my = crop_maps(cam, src, src_c2w, s)
     h, w = image.shape[:2]
     touched = bool((mx < -0.5).any() or (my < -0.5).any() or (mx > w - 0.5).any() or (my > h - 0.5).any())
-    out = cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    out = cv2.remap(image, mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     if s > 1:
         size = cam.intr.width
         out = cv2.resize(out, (size, size), interpolation=cv2.INTER_AREA)
@@ -301,10 +304,13 @@ def matte_scale(windows_px: np.ndarray, size: int, between: tuple[float, float])
 
     The matte decides per pixel and makes the outline fractional over a 1-px band; at twice the
     size both are half as coarse and averaging down gives the outline pixels their coverage
-    (640x480 footage, 64 px crops: alpha IoU +0.01 to +0.03). Below the range the doubled crop
-    would be upsampled footage, which the matte's pixel-sized steps then over-resolve (128 px
-    crops of 640x480: -0.016); above it the 1x matte meets its bars and the 4x pixels
-    (background render included) would cost the real-time throughput.
+    (640x480 footage, 64 px crops: alpha IoU +0.01 to +0.03). It holds down to about one source
+    pixel per crop pixel, where the doubled crop is upsampled footage: 128 px crops of 640x480
+    (1.3 source px per crop px), cut with bicubic taps, gain +1.1 dB on white against the truth
+    and the tree +0.3 dB (docs/benchmarks.md, issue 4, tenth session; with bilinear taps it had
+    lost). Further below, the matte's pixel-sized steps would over-resolve the footage; above the
+    range the 1x matte meets its bars and the 4x pixels (background render included) would cost
+    the real-time throughput.
     """
     if not len(windows_px):
         return 1

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from dbb_capture.cameras import Intrinsics, look_at, project_points
-from dbb_capture.crops import (at_output, crop_camera, cut_crop, follows_previous, matte_scale, object_crop,
+from dbb_capture.crops import (at_output, crop_camera, crop_maps, cut_crop, follows_previous, matte_scale, object_crop,
                                premultiplied_down, sequence_windows, split_by_time, up_from_cameras, viewpoint)
 from dbb_capture.synth import SynthConfig, make_scene, render_object_rgba
 
@@ -87,6 +87,30 @@ def test_cut_crop_centres_a_projected_point_through_distortion():
         cy, cx = (np.mgrid[0:64, 0:64] * w).reshape(2, -1).sum(1) / w.sum()
         assert abs(cx - 31.5) < 0.1 and abs(cy - 31.5) < 0.1, (az, cx, cy)
         assert not touched
+
+
+@pytest.mark.parametrize("size", [128, 256])
+def test_cut_crop_keeps_the_footage_detail(size):
+    """Where a crop pixel spans about one source pixel (640x480 footage, 128 px crops and their
+    2x matte), a grating of 4 source px keeps its contrast (bilinear taps keep ~0.8 of it: the
+    outline blur issue 4 measured)."""
+    import cv2
+
+    src = Intrinsics(640, 480, 520.0, 522.0, 321.4, 238.2, (0.0,) * 5)
+    center, radius = np.array([0.45, 0.12, -0.09]), 0.11
+    c2w = _camera(center, 0, 45, 0.9, 0)
+    cam = crop_camera(c2w, src, center, radius, UP, size=size)
+    assert 0.5 < cam.window_px / size < 1.2                     # ~1 source pixel per crop pixel
+    xx = np.mgrid[0:src.height, 0:src.width][1]
+    wave = lambda x: 100 * np.sin(2 * np.pi * x / 4.0)
+    crop, _ = cut_crop(np.round(127.5 + wave(xx)).astype(np.uint8)[..., None], cam, src, c2w)
+    k = math.ceil(cam.window_px / size)           # cut_crop's samples per pixel (box-filtered)
+    mx, my = crop_maps(cam, src, c2w, k)
+    ideal = cv2.resize(wave(mx).astype(np.float32), (size, size), interpolation=cv2.INTER_AREA)
+    inside = cv2.resize(((mx > 2) & (mx < src.width - 3) & (my > 2) & (my < src.height - 3)).astype(np.float32),
+                        (size, size), interpolation=cv2.INTER_AREA) == 1
+    ideal, got = ideal[inside], crop.reshape(size, size).astype(float)[inside] - 127.5
+    assert (got * ideal).sum() / (ideal ** 2).sum() > 0.95
 
 
 def test_cut_crop_equals_rendering_the_crop_camera():
@@ -183,11 +207,12 @@ def test_premultiplied_down_keeps_the_object_colour_at_the_outline():
 
 
 def test_matte_scale_is_one_per_capture_and_only_for_small_windows():
-    assert matte_scale(np.array([150.0, 180, 230]), 64, (2.0, 6.0)) == 2     # 640x480: ~3 source px a crop px
-    assert matte_scale(np.array([450.0, 576, 700]), 64, (2.0, 6.0)) == 1     # 1920x1440: the 1x matte, real time
-    assert matte_scale(np.array([150.0, 180, 230]), 128, (2.0, 6.0)) == 1    # the doubled crop would be upsampled
+    assert matte_scale(np.array([150.0, 180, 230]), 64, (1.0, 6.0)) == 2     # 640x480: ~3 source px a crop px
+    assert matte_scale(np.array([450.0, 576, 700]), 64, (1.0, 6.0)) == 1     # 1920x1440: the 1x matte, real time
+    assert matte_scale(np.array([150.0, 180, 230]), 128, (1.0, 6.0)) == 2    # ~1.4: bicubic taps upsample it
+    assert matte_scale(np.array([150.0, 180, 230]), 256, (1.0, 6.0)) == 1    # the doubled crop would over-resolve
     assert matte_scale(np.array([180.0]), 64, (0.0, 0.0)) == 1                # turned off
-    assert matte_scale(np.zeros(0), 64, (2.0, 6.0)) == 1
+    assert matte_scale(np.zeros(0), 64, (1.0, 6.0)) == 1
 
 
 def test_object_crop_at_twice_the_size_averages_down_to_the_output_crop():
