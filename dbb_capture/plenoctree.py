@@ -102,6 +102,17 @@ def split_frames(ds: PosedDataset, cfg: RunConfig) -> tuple[list[Frame], list[Fr
     return train_f, test_f
 
 
+def for_tree_depth(fcfg: FieldConfig, depth: int | None) -> FieldConfig:
+    """The field's settings for a tree of ``depth``: a tree whose leaves (2^(depth+1) per axis) are
+    finer than the lattice samples the trilinear field, so the nearest-lookup fine-tuning (which
+    trains the lattice's piecewise-constant cells, as a tree at the lattice's own depth renders
+    them) is left out. 640x480 static capture, 128^3 lattice baked at depth 7: +0.3 dB on white
+    (docs/benchmarks.md, issue 4, tenth session)."""
+    if depth is not None and fcfg.res_max is not None and (1 << (depth + 1)) > fcfg.res_max:
+        return replace(fcfg, nearest_from=1.0)
+    return fcfg
+
+
 def train_run(dataset: Path, out: Path, cfg: RunConfig, field_cfg: FieldConfig | None = None,
               resume: bool = False, overwrite: bool = False, quiet: bool = False) -> Run:
     """Train a field on ``dataset``, bake it, and write the run folder ``out`` (atomically)."""
@@ -127,6 +138,7 @@ def train_run(dataset: Path, out: Path, cfg: RunConfig, field_cfg: FieldConfig |
     if fcfg.res_max is None:
         fcfg = replace(fcfg, res_max=lattice_for_views([(f.c2w, f.intr) for f in train_f], volume, mode,
                                                        cfg.downscale, fcfg.res_start))
+    fcfg = for_tree_depth(fcfg, cfg.depth)
     fcfg.validate()
     bank = build_ray_bank(train_f, cfg.downscale, volume, mode,
                           observed=(state.field.cfg if state is not None else fcfg).observed_loss)

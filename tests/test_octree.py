@@ -325,3 +325,12 @@ def test_bake_with_training_cameras_prunes_without_changing_the_views(baked):
     for f in frames[:4]:
         diff = a.render(f.c2w, f.intr, (1.0, 1.0, 1.0)) - b.render(f.c2w, f.intr, (1.0, 1.0, 1.0))
         assert psnr(float((diff ** 2).mean())) > 30
+
+
+def test_a_tree_finer_than_the_lattice_skips_the_nearest_lookup_phase():
+    from dbb_capture.plenoctree import for_tree_depth
+
+    cfg = FieldConfig(res_max=128)
+    assert for_tree_depth(cfg, 7).nearest_from == 1.0           # 256^3 leaves sample the trilinear field
+    assert for_tree_depth(cfg, 6).nearest_from == cfg.nearest_from   # 128^3 leaves: the lattice's own cells
+    assert for_tree_depth(cfg, None) == cfg
