@@ -28,6 +28,9 @@ def main() -> None:
 @click.option("--mode", type=click.Choice(["auto", "object", "scene"]), default="auto", show_default=True,
               help="object: bounded, RGBA supervision; scene: unbounded (contracted); auto: object if images have alpha.")
 @click.option("--sh-degree", type=click.IntRange(0, 3), default=2, show_default=True)
+@click.option("--sh-full-from", type=click.FloatRange(0, 1), default=0.8, show_default=True,
+              help="Fraction of the budget from which the SH bands above degree 1 train (progressive SH; "
+                   "before it the colour is degree 1, which steps faster and extrapolates better; 0: all from the start).")
 @click.option("--res-max", type=click.IntRange(16, 512), default=None,
               help="Finest lattice per axis inside the object's cube (default: one cell per pixel, the next "
                    "power of two at or above the pixels the training views span across the object, 32-512).")
@@ -52,7 +55,7 @@ def main() -> None:
                    "that see it (default on for preprocess crops; other datasets have no observed pixels).")
 @click.option("--threads", type=click.IntRange(1, 256), default=None,
               help="CPU threads (default: torch's choice; on a machine shared with other jobs 1 is faster).")
-def plenoctree(dataset, out, minutes, steps, downscale, resume, overwrite, mode, sh_degree, res_max,
+def plenoctree(dataset, out, minutes, steps, downscale, resume, overwrite, mode, sh_degree, sh_full_from, res_max,
                max_points, depth, prune_weight, holdout_every, holdout_names, batch_rays, robust_from, carve_share,
                observed_loss, threads) -> None:
     """Static object: train a voxel radiance field on DATASET and bake it into a PlenOctree.
@@ -70,7 +73,7 @@ def plenoctree(dataset, out, minutes, steps, downscale, resume, overwrite, mode,
         torch.set_num_threads(threads)
     names = tuple(n.strip() for n in holdout_names.split(",") if n.strip())
     cfg = RunConfig(minutes, steps, downscale, mode, holdout_every, names, depth, prune_weight)
-    fcfg = FieldConfig(sh_degree=sh_degree, res_max=res_max, max_points=max_points, batch_rays=batch_rays,
+    fcfg = FieldConfig(sh_degree=sh_degree, sh_full_from=sh_full_from, res_max=res_max, max_points=max_points, batch_rays=batch_rays,
                        res_start=min(32, res_max or 32), robust_from=robust_from, carve_share=carve_share,
                        observed_loss=observed_loss)
     run = train_run(dataset, out, cfg, fcfg, resume=resume, overwrite=overwrite)

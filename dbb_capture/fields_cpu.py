@@ -45,7 +45,7 @@ def _sigmoid(x: float) -> float:
 def render_rays_cpu(o: np.ndarray, d: np.ndarray, jitter: np.ndarray, bg: np.ndarray, target: np.ndarray,
                     ray_w: np.ndarray, index: np.ndarray, occ: np.ndarray, res: int, dens: np.ndarray, sh: np.ndarray,
                     gdens: np.ndarray, gsh: np.ndarray, touched_d: np.ndarray, touched_sh: np.ndarray,
-                    act_shift: float, step: float, degree: int, weight_eps: float, grad_scale: float,
+                    act_shift: float, step: float, degree: int, active_degree: int, weight_eps: float, grad_scale: float,
                     backward: bool, nearest: bool, beta_scale: float, out: np.ndarray) -> None:
     """Render rays over their backgrounds; with ``backward``, also add
     ``grad_scale * d(sum of squared errors)/d(table)`` into the gradient buffers.
@@ -59,7 +59,8 @@ def render_rays_cpu(o: np.ndarray, d: np.ndarray, jitter: np.ndarray, bg: np.nda
     ``occ`` (res^3,) bool dilated occupancy. ``dens`` (N+1,), ``sh`` (N+1, 3*nb) float32
     tables; ``gdens``/``gsh`` their gradient buffers (added to), ``touched_d`` /
     ``touched_sh`` (N+1,) bool: rows given a gradient. ``step`` sample spacing in normalized
-    units. ``nearest``: a sample reads its nearest lattice point alone (piecewise constant,
+    units. ``degree``: the tables' SH degree; only the bands up to ``active_degree`` are read
+    and given a gradient (progressive SH). ``nearest``: a sample reads its nearest lattice point alone (piecewise constant,
     as the baked tree renders) instead of the 8 trilinear corners. ``beta_scale``: with
     ``backward``, also add ``beta_scale * d(sum over rays of log(A + e) + log(1 - A + e))``,
     ``A`` the ray's opacity, ``e`` = ``BETA_EPS``. ``out`` (B, 5) receives the composited
@@ -68,6 +69,7 @@ def render_rays_cpu(o: np.ndarray, d: np.ndarray, jitter: np.ndarray, bg: np.nda
     B = o.shape[0]
     nb = (degree + 1) * (degree + 1)
     C = 3 * nb
+    na = (min(active_degree, degree) + 1) ** 2     # coefficients in use per channel
     inv_cell = res / 2.0
     S_max = int(2.0 / step) + 3
     sentinel = dens.shape[0] - 1
@@ -153,11 +155,12 @@ def render_rays_cpu(o: np.ndarray, d: np.ndarray, jitter: np.ndarray, bg: np.nda
                         for cc in range(ncorner):
                             row = rows[n, cc]
                             w32 = wts[n, cc]
-                            for q in range(C):
-                                cf[q] += w32 * sh[row, q]
+                            for c3 in range(3):
+                                for q in range(c3 * nb, c3 * nb + na):
+                                    cf[q] += w32 * sh[row, q]
                         for c3 in range(3):
                             v = 0.0
-                            for q in range(nb):
+                            for q in range(na):
                                 v += cf[c3 * nb + q] * shb[q]
                             rgb[n, c3] = _sigmoid(v)
                         C0 += wgt * rgb[n, 0]
@@ -207,7 +210,7 @@ def render_rays_cpu(o: np.ndarray, d: np.ndarray, jitter: np.ndarray, bg: np.nda
                     h0 = g0 * wgt * c0 * (1.0 - c0)
                     h1 = g1 * wgt * c1 * (1.0 - c1)
                     h2 = g2 * wgt * c2 * (1.0 - c2)
-                    for q in range(nb):
+                    for q in range(na):
                         gq[q] = h0 * shb[q]
                         gq[nb + q] = h1 * shb[q]
                         gq[2 * nb + q] = h2 * shb[q]
@@ -217,8 +220,9 @@ def render_rays_cpu(o: np.ndarray, d: np.ndarray, jitter: np.ndarray, bg: np.nda
                             continue
                         touched_sh[row] = True
                         w32 = wts[i, cc]
-                        for q in range(C):
-                            gsh[row, q] += w32 * gq[q]
+                        for c3 in range(3):
+                            for q in range(c3 * nb, c3 * nb + na):
+                                gsh[row, q] += w32 * gq[q]
 
 
 @numba.njit(cache=True, fastmath=_FM, nogil=True)

@@ -106,6 +106,22 @@ def test_checkpoint_resume_continues(trained, tmp_path):
     assert more.step == state.step + 3
 
 
+def test_higher_sh_bands_join_at_sh_full_from(tmp_path):
+    """Progressive SH: before ``sh_full_from`` only bands 0 and 1 train (band 2 stays exactly
+    zero); from there on band 2 trains too."""
+    from dataclasses import replace
+
+    frames, vol = synthetic_object_frames(tmp_path, n=8, size=16)
+    bank = build_ray_bank(frames, 1, vol)
+    band2 = (torch.arange(3 * TINY.n_basis) % TINY.n_basis) >= 4
+    for full_from, moved in [(1.0, False), (0.5, True)]:
+        cfg = replace(TINY, sh_full_from=full_from, upsample_at=())
+        state = train(TrainState(new_field(cfg, vol, torch.device("cpu"))), bank, Budget(steps=12))
+        sh = state.field.sh.data[:-1]
+        assert float(sh[:, ~band2].abs().max()) > 0
+        assert (float(sh[:, band2].abs().max()) > 0) == moved, full_from
+
+
 def test_final_steps_fine_tune_what_the_tree_renders(trained):
     """From ``nearest_from`` on, samples read the nearest lattice point (the tree's piecewise
     constant leaves), so the baked tree renders what the field learned; a trilinear field's
@@ -132,12 +148,13 @@ def test_scene_mode_fits_an_opaque_rgb_view(tmp_path):
     assert state.history[-1]["psnr"] > state.history[0]["psnr"] + 5
 
 
-@pytest.mark.parametrize("nearest", [False, True])
-def test_cpu_kernel_matches_autograd(nearest):
+@pytest.mark.parametrize("nearest,sh_active", [(False, 2), (True, 2), (False, 1)])
+def test_cpu_kernel_matches_autograd(nearest, sh_active):
     """The numba training step renders the same colours and adds the same gradients as
     render_rays + MSE + autograd, on a random field with inactive points and degree-2 SH,
     interpolating trilinearly or (the tree fine-tuning phase) reading the nearest point, and
-    with the opacity prior."""
+    with the opacity prior; with the degree-2 band not yet in use (progressive SH), it neither
+    colours nor gets a gradient."""
     from dbb_capture.fields import (VoxelField, cpu_photometric_step, cpu_tv_step, opacity_prior, render_rays,
                                     tv_loss)
 
@@ -150,6 +167,7 @@ def test_cpu_kernel_matches_autograd(nearest):
     field = VoxelField(cfg, vol, res, torch.device("cpu"), active,
                        torch.randn(n, 1) * 2 + 3, torch.randn(n, 3 * cfg.n_basis))
     field.nearest = nearest
+    field.sh_active = sh_active
     B = 64
     d = torch.nn.functional.normalize(torch.randn(B, 3), dim=-1)
     o = torch.tensor(vol.center) - 1.2 * d + 0.3 * torch.randn(B, 3) * 0.5
@@ -183,6 +201,8 @@ def test_cpu_kernel_matches_autograd(nearest):
     assert torch.allclose(field.sh.grad[:-1], g_sh[:-1], atol=1e-9, rtol=1e-4)
     assert float(g_dens.abs().sum()) > 0 and float(g_sh.abs().sum()) > 0
     assert torch.equal(field.density.touched[:-1], g_dens[:-1, 0] != 0)
+    band2 = (torch.arange(3 * cfg.n_basis) % cfg.n_basis) >= 4
+    assert (float(field.sh.grad[:, band2].abs().sum()) == 0) == (sh_active < 2)
 
     # Total variation: the same means and gradients as tv_loss + autograd.
     field.density.grad.zero_()
