@@ -73,8 +73,8 @@ def plenoctree(dataset, out, minutes, steps, downscale, resume, overwrite, mode,
         torch.set_num_threads(threads)
     names = tuple(n.strip() for n in holdout_names.split(",") if n.strip())
     cfg = RunConfig(minutes, steps, downscale, mode, holdout_every, names, depth, prune_weight)
-    fcfg = FieldConfig(sh_degree=sh_degree, sh_full_from=sh_full_from, res_max=res_max, max_points=max_points, batch_rays=batch_rays,
-                       res_start=min(32, res_max or 32), robust_from=robust_from, carve_share=carve_share,
+    fcfg = FieldConfig(sh_degree=sh_degree, sh_full_from=sh_full_from, res_max=res_max, max_points=max_points,
+                       batch_rays=batch_rays, res_start=min(32, res_max or 32), robust_from=robust_from, carve_share=carve_share,
                        observed_loss=observed_loss)
     run = train_run(dataset, out, cfg, fcfg, resume=resume, overwrite=overwrite)
     m = run.meta

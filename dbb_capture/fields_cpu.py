@@ -60,8 +60,8 @@ def render_rays_cpu(o: np.ndarray, d: np.ndarray, jitter: np.ndarray, bg: np.nda
     tables; ``gdens``/``gsh`` their gradient buffers (added to), ``touched_d`` /
     ``touched_sh`` (N+1,) bool: rows given a gradient. ``step`` sample spacing in normalized
     units. ``degree``: the tables' SH degree; only the bands up to ``active_degree`` are read
-    and given a gradient (progressive SH). ``nearest``: a sample reads its nearest lattice point alone (piecewise constant,
-    as the baked tree renders) instead of the 8 trilinear corners. ``beta_scale``: with
+    and given a gradient (progressive SH). ``nearest``: a sample reads its nearest lattice
+    point alone (piecewise constant, as the baked tree renders) instead of the 8 trilinear corners. ``beta_scale``: with
     ``backward``, also add ``beta_scale * d(sum over rays of log(A + e) + log(1 - A + e))``,
     ``A`` the ray's opacity, ``e`` = ``BETA_EPS``. ``out`` (B, 5) receives the composited
     RGB, the opacity and the squared error summed over RGB.
