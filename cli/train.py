@@ -30,7 +30,8 @@ def main() -> None:
 @click.option("--sh-degree", type=click.IntRange(0, 3), default=2, show_default=True)
 @click.option("--sh-full-from", type=click.FloatRange(0, 1), default=0.8, show_default=True,
               help="Fraction of the budget from which the SH bands above degree 1 train (progressive SH; "
-                   "before it the colour is degree 1, which steps faster and extrapolates better; 0: all from the start).")
+                   "before it the colour is degree 1, which steps faster and extrapolates better; "
+                   "0: all from the start).")
 @click.option("--res-max", type=click.IntRange(16, 512), default=None,
               help="Finest lattice per axis inside the object's cube (default: one cell per pixel, the next "
                    "power of two at or above the pixels the training views span across the object, 32-512).")
@@ -74,7 +75,8 @@ def plenoctree(dataset, out, minutes, steps, downscale, resume, overwrite, mode,
     names = tuple(n.strip() for n in holdout_names.split(",") if n.strip())
     cfg = RunConfig(minutes, steps, downscale, mode, holdout_every, names, depth, prune_weight)
     fcfg = FieldConfig(sh_degree=sh_degree, sh_full_from=sh_full_from, res_max=res_max, max_points=max_points,
-                       batch_rays=batch_rays, res_start=min(32, res_max or 32), robust_from=robust_from, carve_share=carve_share,
+                       batch_rays=batch_rays, res_start=min(32, res_max or 32), robust_from=robust_from,
+                       carve_share=carve_share,
                        observed_loss=observed_loss)
     run = train_run(dataset, out, cfg, fcfg, resume=resume, overwrite=overwrite)
     m = run.meta

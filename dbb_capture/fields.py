@@ -873,7 +873,8 @@ def _cpu_rays(field: VoxelField, origins: torch.Tensor, dirs: torch.Tensor, bg: 
                     field.index.numpy(), field.occupancy().numpy(), field.res,
                     field.density.data.numpy()[:, 0], field.sh.data.numpy(), field.density.grad.numpy()[:, 0],
                     field.sh.grad.numpy(), field.density.touched.numpy(), field.sh.touched.numpy(),
-                    field.act_shift, field.step, field.cfg.sh_degree, field.sh_active, field.cfg.weight_eps, 1.0 / (3 * B),
+                    field.act_shift, field.step, field.cfg.sh_degree, field.sh_active, field.cfg.weight_eps,
+                    1.0 / (3 * B),
                     target is not None, field.nearest, beta / B, out)
     return out
 

@@ -45,7 +45,8 @@ def _sigmoid(x: float) -> float:
 def render_rays_cpu(o: np.ndarray, d: np.ndarray, jitter: np.ndarray, bg: np.ndarray, target: np.ndarray,
                     ray_w: np.ndarray, index: np.ndarray, occ: np.ndarray, res: int, dens: np.ndarray, sh: np.ndarray,
                     gdens: np.ndarray, gsh: np.ndarray, touched_d: np.ndarray, touched_sh: np.ndarray,
-                    act_shift: float, step: float, degree: int, active_degree: int, weight_eps: float, grad_scale: float,
+                    act_shift: float, step: float, degree: int, active_degree: int, weight_eps: float,
+                    grad_scale: float,
                     backward: bool, nearest: bool, beta_scale: float, out: np.ndarray) -> None:
     """Render rays over their backgrounds; with ``backward``, also add
     ``grad_scale * d(sum of squared errors)/d(table)`` into the gradient buffers.
@@ -61,8 +62,8 @@ def render_rays_cpu(o: np.ndarray, d: np.ndarray, jitter: np.ndarray, bg: np.nda
     ``touched_sh`` (N+1,) bool: rows given a gradient. ``step`` sample spacing in normalized
     units. ``degree``: the tables' SH degree; only the bands up to ``active_degree`` are read
     and given a gradient (progressive SH). ``nearest``: a sample reads its nearest lattice
-    point alone (piecewise constant, as the baked tree renders) instead of the 8 trilinear corners. ``beta_scale``: with
-    ``backward``, also add ``beta_scale * d(sum over rays of log(A + e) + log(1 - A + e))``,
+    point alone (piecewise constant, as the baked tree renders) instead of the 8 trilinear
+    corners. ``beta_scale``: with ``backward``, also add ``beta_scale * d(sum over rays of log(A + e) + log(1 - A + e))``,
     ``A`` the ray's opacity, ``e`` = ``BETA_EPS``. ``out`` (B, 5) receives the composited
     RGB, the opacity and the squared error summed over RGB.
     """

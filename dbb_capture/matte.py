@@ -64,7 +64,8 @@ class MatteConfig:
     sharp_min_detail: float = 0.8  # ... and needs a field that keeps this share of the room's 1-px detail
     room_levels: int = 8           # per channel, predicted colours whose room error is measured apart (0: off)
     room_min_px: int = 20          # room pixels a predicted colour needs for its own noise level
-    supersample_between: tuple[float, float] = (1.0, 6.0)  # matte at 2x where the crop window has this many source px per crop px
+    # Matte at 2x where the crop window has this many source px per crop px (crops.matte_scale).
+    supersample_between: tuple[float, float] = (1.0, 6.0)
 
 
 def sphere_disc(size: int, fill: float, margin: float = 1.0) -> np.ndarray:

@@ -43,6 +43,11 @@ def synthetic_object_frames(folder, n=24, size=32, seed=0):
 TINY = FieldConfig(res_start=16, res_max=32, batch_rays=512, upsample_at=(0.3,), tv_points=2048)
 
 
+def _band2(cfg: FieldConfig) -> torch.Tensor:
+    """(3 * n_basis,) bool: the SH table's degree-2 columns (each channel's coefficients 4..8)."""
+    return (torch.arange(3 * cfg.n_basis) % cfg.n_basis) >= 4
+
+
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
     folder = tmp_path_factory.mktemp("synth_object")
@@ -113,7 +118,7 @@ def test_higher_sh_bands_join_at_sh_full_from(tmp_path):
 
     frames, vol = synthetic_object_frames(tmp_path, n=8, size=16)
     bank = build_ray_bank(frames, 1, vol)
-    band2 = (torch.arange(3 * TINY.n_basis) % TINY.n_basis) >= 4
+    band2 = _band2(TINY)
     for full_from, moved in [(1.0, False), (0.5, True)]:
         cfg = replace(TINY, sh_full_from=full_from, upsample_at=())
         state = train(TrainState(new_field(cfg, vol, torch.device("cpu"))), bank, Budget(steps=12))
@@ -201,7 +206,7 @@ def test_cpu_kernel_matches_autograd(nearest, sh_active):
     assert torch.allclose(field.sh.grad[:-1], g_sh[:-1], atol=1e-9, rtol=1e-4)
     assert float(g_dens.abs().sum()) > 0 and float(g_sh.abs().sum()) > 0
     assert torch.equal(field.density.touched[:-1], g_dens[:-1, 0] != 0)
-    band2 = (torch.arange(3 * cfg.n_basis) % cfg.n_basis) >= 4
+    band2 = _band2(cfg)
     assert (float(field.sh.grad[:, band2].abs().sum()) == 0) == (sh_active < 2)
 
     # Total variation: the same means and gradients as tv_loss + autograd.
