@@ -235,7 +235,8 @@ class TrainConfig:
                                    # consecutive training frames; None: the dataset's own windows (the
                                    # default: 30 gave less in a 15-minute budget, docs/benchmarks.md)
     augment: str = "flip,reverse"  # comma-separated: "flip" mirrors half the windows left-right (azimuth
-                                   # negated), "reverse" plays half of them backwards; "none"
+                                   # negated), "reverse" plays half of them backwards, "shift" moves each
+                                   # window by a random whole-pixel offset (up to size/16, DrQ); "none"
     val_fraction: float = 0.0      # model selection: this fraction of the training frames (the last, in
                                    # time) is held out of training; every val_every steps the open loop
                                    # is scored on its windows and the best model is the one written
@@ -254,9 +255,9 @@ class TrainConfig:
                                    # 60 and 120 gave less motion than without, 16th round)
 
     def validate(self) -> None:
-        bad = set(self.augment.split(",")) - {"none", "flip", "reverse"}
+        bad = set(self.augment.split(",")) - {"none", "flip", "reverse", "shift"}
         if bad:
-            raise DbbError(f"augment: unknown {', '.join(sorted(bad))} (flip, reverse or none)")
+            raise DbbError(f"augment: unknown {', '.join(sorted(bad))} (flip, reverse, shift or none)")
         if not 0.0 <= self.val_fraction < 0.5:
             raise DbbError(f"val_fraction must be in [0, 0.5), not {self.val_fraction}")
         if self.val_every < 1:
@@ -1333,7 +1334,25 @@ def augment(x: torch.Tensor, views: torch.Tensor, how: str, rng: np.random.Gener
         r = torch.from_numpy(rng.random(B) < 0.5).to(x.device)
         x = torch.where(r[:, None, None, None, None], x.flip(1), x)
         views = torch.where(r[:, None, None], views.flip(1), views)
+    if "shift" in kinds:
+        x = shift_windows(x, rng.integers(-(x.shape[-1] // 16), x.shape[-1] // 16 + 1, size=(B, 2)))
     return x, views
+
+
+def shift_windows(x: torch.Tensor, offsets: np.ndarray) -> torch.Tensor:
+    """Windows ``x`` (B, L, C, S, S) each moved by whole pixels ``offsets`` (B, 2) = (dx, dy), the
+    same for every frame of a window (its motion is kept), edges repeated (DrQ's random shift).
+
+    The crops put the toy at one place in the frame; a model that only ever sees it there can key
+    its motion to pixel positions it will not meet at new viewpoints, where the crop sits a pixel
+    or two off."""
+    B, L, C, S, _ = x.shape
+    k = int(np.abs(offsets).max()) if len(offsets) else 0
+    if k == 0:
+        return x
+    pad = F.pad(x.reshape(B, L * C, S, S), (k, k, k, k), mode="replicate")
+    out = [pad[b, :, k - dy:k - dy + S, k - dx:k - dx + S] for b, (dx, dy) in enumerate(offsets.tolist())]
+    return torch.stack(out).reshape(B, L, C, S, S)
 
 
 # --------------------------------------------------------------------------- model selection

@@ -656,6 +656,17 @@ def test_augment_mirrors_and_reverses_whole_windows():
         rssm.TrainConfig(augment="flip,spin").validate()
 
 
+def test_shift_moves_every_frame_of_a_window_alike():
+    x = torch.zeros(2, 3, 4, 32, 32)
+    x[:, :, :, 10, 20] = 1.0
+    y = rssm.shift_windows(x, np.array([[2, -1], [0, 0]]))
+    assert torch.nonzero(y[0, :, :, 9, 22]).shape[0] == 3 * 4 and y[0].sum() == 3 * 4   # moved, not smeared
+    assert torch.equal(y[1], x[1])
+    y, w = rssm.augment(torch.rand(16, 3, 4, 32, 32), torch.rand(16, 3, 3), "shift", np.random.default_rng(0))
+    assert y.shape == (16, 3, 4, 32, 32)
+    rssm.TrainConfig(augment="flip,reverse,shift").validate()
+
+
 def test_stepper_upsamples_with_phase_convolutions_exactly():
     torch.manual_seed(0)
     for c_in, c_out in ((12, 5), (40, 8)):          # below and above the channels-last width
