@@ -430,7 +430,7 @@ def main() -> None:
     q.add_argument("--batch", type=int, default=rssm.TrainConfig.batch)
     q.add_argument("--threads", type=int, default=1)
     q.add_argument("--lr", type=float, default=rssm.TrainConfig.lr)
-    q.add_argument("--temperature", type=float, default=1.0, help="run-time sampling temperature")
+    q.add_argument("--temperature", type=float, default=rssm.RUN_TEMPERATURE, help="run-time sampling temperature")
     q.add_argument("--no-train", action="store_true", help="only evaluate an existing run")
     q.add_argument("--resume", action="store_true", help="train an existing run further (to --minutes in all)")
     q.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",

@@ -99,8 +99,9 @@ def plenoctree(dataset, out, minutes, steps, downscale, resume, overwrite, mode,
 @click.option("--threads", type=click.IntRange(1, 256), default=None,
               help="CPU threads for torch (default: torch's choice).")
 @click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--temperature", type=click.FloatRange(0.0, 10.0), default=1.0, show_default=True,
-              help="Run-time sampling temperature of the stochastic state (0: its mean, which shrinks motion).")
+@click.option("--temperature", type=click.FloatRange(0.0, 10.0), default=None,
+              help="Run-time sampling temperature of the stochastic state (0: its mean, which shrinks motion; "
+                   "default: rssm.RUN_TEMPERATURE, 1.3).")
 @click.option("--resume", is_flag=True, help="Continue from the run's last checkpoint.")
 @click.option("--overwrite", is_flag=True, help="Replace the run folder if it exists.")
 @click.option("--set", "settings", multiple=True, metavar="NAME=VALUE",
