@@ -58,9 +58,10 @@ from .progress import progress
 RUN_FORMAT = "dbb-rssm-run"
 SIZES = (32, 64, 128, 256)
 # The run-time stepper's default sampling temperature. At 1 the sampled motion at a still
-# viewpoint came out at 0.62-0.78 of the truth's on the sample (trained with shifted windows,
-# four seeds); squared error teaches the decoder to hedge, so the prior's spread undershoots.
-# 1.3 put every sample at 0.80-1.07 for a 0.04 dB cost (docs/benchmarks.md, nineteenth round).
+# viewpoint came out at 0.62-1.01 of the truth's on the sample (trained with shifted windows,
+# four seeds, three of them under 0.7): squared error teaches the model to hedge, so the prior's
+# spread undershoots. 1.3 put all 24 sampled rollouts at 0.80-1.23 for 0.04-0.06 dB
+# (docs/benchmarks.md, nineteenth round).
 RUN_TEMPERATURE = 1.3
 
 
@@ -1973,8 +1974,8 @@ def _fps(data: SequenceData) -> float | None:
     return round(1.0 / float(np.median(np.diff(data.times))), 4)
 
 
-def run_eval(model: Rssm, data: SequenceData, folder: Path, history: list[dict], temperature: float = RUN_TEMPERATURE,
-             **kw) -> EvalReport:
+def run_eval(model: Rssm, data: SequenceData, folder: Path, history: list[dict],
+             temperature: float = RUN_TEMPERATURE, **kw) -> EvalReport:
     """Evaluate ``model`` (sampling at ``temperature``) on ``data``; ``eval.json`` and figures into ``folder``."""
     report, figs = evaluate(Stepper(model.cpu().eval(), temperature), data, **kw)
     folder.mkdir(parents=True, exist_ok=True)

@@ -662,8 +662,11 @@ def test_shift_moves_every_frame_of_a_window_alike():
     y = rssm.shift_windows(x, np.array([[2, -1], [0, 0]]))
     assert torch.nonzero(y[0, :, :, 9, 22]).shape[0] == 3 * 4 and y[0].sum() == 3 * 4   # moved, not smeared
     assert torch.equal(y[1], x[1])
-    y, w = rssm.augment(torch.rand(16, 3, 4, 32, 32), torch.rand(16, 3, 3), "shift", np.random.default_rng(0))
-    assert y.shape == (16, 3, 4, 32, 32)
+    x = torch.zeros(16, 3, 4, 32, 32)
+    x[..., 8:24, 8:24] = torch.rand(16, 3, 4, 16, 16)     # content clear of the edges (max shift 2 px)
+    y, w = rssm.augment(x, torch.rand(16, 3, 3), "shift", np.random.default_rng(0))
+    assert torch.allclose(y.sum((2, 3, 4)), x.sum((2, 3, 4)))          # moved whole, nothing lost
+    assert int((y != x).flatten(1).any(1).sum()) >= 12         # (0, 0) is 1 offset of 25
     rssm.TrainConfig(augment="flip,reverse,shift").validate()
 
 
