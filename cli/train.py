@@ -101,7 +101,7 @@ def plenoctree(dataset, out, minutes, steps, downscale, resume, overwrite, mode,
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--temperature", type=click.FloatRange(0.0, 10.0), default=None,
               help="Run-time sampling temperature of the stochastic state (0: its mean, which shrinks motion; "
-                   "default: rssm.RUN_TEMPERATURE, 1.3).")
+                   "default: rssm.RUN_TEMPERATURE, 1).")
 @click.option("--resume", is_flag=True, help="Continue from the run's last checkpoint.")
 @click.option("--overwrite", is_flag=True, help="Replace the run folder if it exists.")
 @click.option("--set", "settings", multiple=True, metavar="NAME=VALUE",
