@@ -1324,6 +1324,7 @@ def augment(x: torch.Tensor, views: torch.Tensor, how: str, rng: np.random.Gener
     """Training windows ``x`` (B, L, 4, S, S), ``views`` (B, L, 3), each changed with probability 1/2
     as ``how`` asks (``TrainConfig.augment``): "flip" mirrors the frames left-right and negates the
     azimuth (the mirrored toy seen from the mirrored side), "reverse" plays the window backwards.
+    "shift" moves every window by a random whole-pixel offset of up to S/16 (:func:`shift_windows`).
 
     The toy is seen along one camera path, each viewpoint at one time: the model can learn which
     pose goes with which view and window instead of how the toy moves (2-5 dB better on training
