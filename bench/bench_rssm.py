@@ -352,9 +352,12 @@ def overrides(pairs: list[str]) -> tuple[rssm.RssmConfig, rssm.TrainConfig]:
 
 
 def quality(dataset: Path, run: Path, capture: Path | None, minutes: float, steps: int | None, batch: int,
-            lr: float, temperature: float, train: bool, settings: list[str] = (),
+            lr: float, temperature: float | None, train: bool, settings: list[str] = (),
             start_frame: int | None = None, resume: bool = False) -> dict:
-    """Train on a preprocess dataset (unless ``train`` is off), then evaluate with the still-view truth."""
+    """Train on a preprocess dataset (unless ``train`` is off), then evaluate with the still-view truth.
+
+    ``temperature`` None: the run's own, fitted to the footage (``rssm.calibrate_temperature``;
+    with ``train`` off it is fitted again and the run's report rewritten)."""
     still = None
     if capture is not None:
         cache = run.parent / f".{run.name}.still.pt"
@@ -376,11 +379,16 @@ def quality(dataset: Path, run: Path, capture: Path | None, minutes: float, step
                     "test_sequences": meta["training"]["test_sequences"],
                     "run_eval_motion_dataset_truth": meta["eval"]["motion"]})
     else:
+        if temperature is None:
+            rssm.eval_run(run, dataset, calibrate=True)
         meta = json.loads((run / "run.json").read_text())
         out["eval_settings"] = list(settings)       # tried on the trained weights (with_settings)
         out.update({"train_steps": meta["training"]["steps"],
                     "train_minutes": round(meta["training"]["seconds"] / 60, 2)})
     out["load_average_1min_after"] = round(os.getloadavg()[0], 2)
+    if temperature is None:
+        temperature = float(meta["stepper"]["temperature"])
+        out["temperature_calibration"] = meta["stepper"].get("temperature_calibration")
     if still is None and start_frame is not None:
         # Fixed-camera footage is its own still-view truth, from any start frame.
         data = rssm.load_sequences(dataset, rssm.load_model(run).cfg.size)
@@ -430,7 +438,8 @@ def main() -> None:
     q.add_argument("--batch", type=int, default=rssm.TrainConfig.batch)
     q.add_argument("--threads", type=int, default=1)
     q.add_argument("--lr", type=float, default=rssm.TrainConfig.lr)
-    q.add_argument("--temperature", type=float, default=rssm.RUN_TEMPERATURE, help="run-time sampling temperature")
+    q.add_argument("--temperature", type=float, default=None,
+                   help="run-time sampling temperature (default: fitted to the footage, as dbb-train rssm does)")
     q.add_argument("--no-train", action="store_true", help="only evaluate an existing run")
     q.add_argument("--resume", action="store_true", help="train an existing run further (to --minutes in all)")
     q.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",

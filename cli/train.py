@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import click
@@ -100,8 +101,9 @@ def plenoctree(dataset, out, minutes, steps, downscale, resume, overwrite, mode,
               help="CPU threads for torch (default: torch's choice).")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--temperature", type=click.FloatRange(0.0, 10.0), default=None,
-              help="Run-time sampling temperature of the stochastic state (0: its mean, which shrinks motion; "
-                   "default: rssm.RUN_TEMPERATURE, 1).")
+              help="Run-time sampling temperature of the stochastic state (0: its mean, which shrinks motion). "
+                   "Default: fitted to the footage, so that at a still viewpoint the rollouts move as much as "
+                   "the object does in the footage (run.json: stepper.temperature_calibration).")
 @click.option("--resume", is_flag=True, help="Continue from the run's last checkpoint.")
 @click.option("--overwrite", is_flag=True, help="Replace the run folder if it exists.")
 @click.option("--set", "settings", multiple=True, metavar="NAME=VALUE",
@@ -132,11 +134,15 @@ def rssm(dataset, out, minutes, steps, size, batch, threads, seed, temperature, 
               help="Evaluate on this crops.json dataset instead of the run's own.")
 @click.option("--temperature", type=click.FloatRange(0.0, 10.0), default=None,
               help="New run-time sampling temperature (also rewrites stepper.ts and run.json's stepper entry).")
-def rssm_eval(run, dataset, temperature) -> None:
+@click.option("--calibrate", is_flag=True,
+              help="Fit the run-time temperature to the footage again (as training does by default).")
+def rssm_eval(run, dataset, temperature, calibrate) -> None:
     """Re-run the evaluation of an RSSM RUN folder (rewrites RUN/report/ and run.json's eval)."""
     from dbb_capture.rssm import eval_run
 
-    _print_rssm(run, eval_run(run, dataset, temperature).to_json(), "re-evaluated")
+    if calibrate and temperature is not None:
+        raise click.UsageError("give --temperature or --calibrate, not both")
+    _print_rssm(run, eval_run(run, dataset, temperature, calibrate=calibrate).to_json(), "re-evaluated")
 
 
 def _print_rssm(out: Path, ev: dict, what: str) -> None:
@@ -146,3 +152,8 @@ def _print_rssm(out: Path, ev: dict, what: str) -> None:
     console.print(f"wrote {out}: {what}; 10-step open-loop PSNR {p['model']:.2f} dB "
                   f"(copy-first {p['copy_first']:.2f}, near {p['near']:.2f}) on {ev['windows']} {ev['split']} "
                   f"windows; motion-energy ratio {ev['motion']['ratio']}")
+    st = json.loads((Path(out) / "run.json").read_text())["stepper"]
+    cal = st.get("temperature_calibration")
+    console.print(f"run-time temperature {st['temperature']:.3g}"
+                  + ("" if cal is None else " (fitted to the footage's still-view motion"
+                     + (f"; {cal['note']}" if cal.get("note") else "") + ")"))

@@ -57,10 +57,11 @@ from .progress import progress
 
 RUN_FORMAT = "dbb-rssm-run"
 SIZES = (32, 64, 128, 256)
-# The run-time stepper's default sampling temperature: the prior as trained. No other value
-# carries over between captures: on the sample, 1.3 lifted the still-view motion from 0.62-1.01
-# of the truth's into the band (0.80-1.23), but a second capture already moved 1.5-1.6x the truth
-# at 1 and 1.8-2.0x at 1.3 (docs/benchmarks.md, nineteenth round).
+# The run-time sampling temperature when it cannot be fitted to the footage (no run of consecutive
+# training frames; see calibrate_temperature): the prior as trained. No fixed value carries over
+# between captures: on the sample, 1.3 lifted the still-view motion from 0.62-1.01 of the truth's
+# into the band (0.80-1.23), but a second capture already moved 1.5-1.6x the truth at 1 and
+# 1.8-2.0x at 1.3 (docs/benchmarks.md, nineteenth round).
 RUN_TEMPERATURE = 1.0
 
 
@@ -1171,21 +1172,16 @@ class Stepper(nn.Module):
         std = F.softplus(raw) + self.min_std
         return h, torch.addcmul(mean, std, torch.randn_like(std), value=self.temperature)
 
-    def _fast_step(self, h: torch.Tensor, z: torch.Tensor, view: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """``step`` for "accum" with relative views (the default): the view changes' encodings come
-        straight from the angles (the same values as view_delta_encoding, in fewer operations)."""
-        h, z = self._transition(h, z)
-        n = view.shape[0]
-        d = self._pe(torch.cat([view - self.ctx_view, view - self.prev_view]))
-        pm, self.warp = self.decoder.accum_step(torch.cat([h, z, d[:n], d[n:]], -1), self.ctx, self.ctx_pm, self.warp)
-        self.prev_view = view
-        return h, z, straight(pm)
-
-    @torch.jit.export
-    def step(self, h: torch.Tensor, z: torch.Tensor, view: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def _decode(self, h: torch.Tensor, z: torch.Tensor, view: torch.Tensor) -> torch.Tensor:
+        """Straight RGBA (B, 4, S, S) of state (h, z) seen from ``view``; moves the accumulated warp on."""
         if self.fast_views:
-            return self._fast_step(h, z, view)
-        h, z = self._transition(h, z)
+            # "accum" with relative views (the default): the view changes' encodings come straight
+            # from the angles (the same values as view_delta_encoding, in fewer operations).
+            n = view.shape[0]
+            d = self._pe(torch.cat([view - self.ctx_view, view - self.prev_view]))
+            pm, self.warp = self.decoder.accum_step(torch.cat([h, z, d[:n], d[n:]], -1), self.ctx, self.ctx_pm, self.warp)
+            self.prev_view = view
+            return straight(pm)
         pe = self._pe(view)
         ctx_pe = self._pe(self.ctx_view) if self.skip else pe      # without the skip path: unused
         if self.accum:
@@ -1196,7 +1192,26 @@ class Stepper(nn.Module):
         else:
             feat = decoder_features(h, z, pe, ctx_pe, self.skip, self.decoder_view, self.freqs)
             pm = self.decoder(feat, self.ctx, self.ctx_pm)
-        return h, z, straight(pm)
+        return straight(pm)
+
+    @torch.jit.export
+    def step(self, h: torch.Tensor, z: torch.Tensor, view: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        h, z = self._transition(h, z)
+        return h, z, self._decode(h, z, view)
+
+    @torch.jit.export
+    def observe(self, h: torch.Tensor, z: torch.Tensor, rgba: torch.Tensor, view: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Filtering instead of forecasting: the next state after seeing frame ``rgba`` (straight
+        RGBA (B, 4, S, S)) from ``view``, z the posterior's mean. Nothing is decoded."""
+        h = self.gru(self.z_in(z), h)
+        pm = torch.cat([rgba[:, :3] * rgba[:, 3:4], rgba[:, 3:4]], 1)
+        mean, raw = self.post(torch.cat([h, self.encoder(pm), self._pe(view)], -1)).chunk(2, -1)
+        return h, mean
+
+    @torch.jit.export
+    def decode(self, h: torch.Tensor, z: torch.Tensor, view: torch.Tensor) -> torch.Tensor:
+        """The frame of a state (e.g. from :meth:`observe`) seen from ``view`` (see :meth:`step`)."""
+        return self._decode(h, z, view)
 
     def forward(self, h: torch.Tensor, z: torch.Tensor, view: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         return self.step(h, z, view)
@@ -1820,6 +1835,104 @@ def _with_temperature(stepper, temperature: float):
     return None
 
 
+@dataclass
+class Calibration:
+    """The run-time temperature fitted to the footage (:func:`calibrate_temperature`).
+
+    Energies are mean absolute changes per step of premultiplied RGBA frames (as
+    :func:`motion_energy`), over ``steps``-step runs from the training frames ``starts``.
+    """
+
+    temperature: float
+    target: float | None                  # the footage's own motion, as the model sees it
+    energy: dict[float, float]            # still-view open-loop energy at each temperature tried
+    starts: list[int]
+    steps: int
+    note: str | None = None
+
+    def to_json(self) -> dict:
+        return {"temperature": round(self.temperature, 4),
+                "target_energy": None if self.target is None else round(self.target, 6),
+                "energy_by_temperature": {f"{t:g}": round(e, 6) for t, e in self.energy.items()},
+                "starts": self.starts, "steps": self.steps, "note": self.note}
+
+
+# Temperatures the calibration tries (the fit interpolates between them and stays inside them).
+CALIBRATION_TEMPERATURES = (0.25, 0.5, 1.0, 1.5, 2.0, 3.0)
+
+
+def long_training_runs(data: SequenceData, steps: int, count: int) -> tuple[np.ndarray, int]:
+    """Up to ``count`` evenly spread starts of runs of 1 + ``steps`` consecutive training frames,
+    and that length; shorter runs (down to the dataset's window) when the footage has none."""
+    for length in range(min(steps + 1, len(data.times)), data.length - 1, -1):
+        starts = np.array([s for s, sp in sequence_windows(data.times, data.splits, length) if sp == "train"],
+                          dtype=np.int64)
+        if len(starts):
+            pick = np.linspace(0, len(starts) - 1, min(count, len(starts))).round().astype(int)
+            return starts[np.unique(pick)], length
+    return np.zeros(0, np.int64), 0
+
+
+@torch.no_grad()
+def still_view_target(model: Rssm, data: SequenceData, starts: np.ndarray, length: int) -> float:
+    """Energy per step of the footage's own motion as the model sees it: the posterior follows
+    the real frames (:meth:`Stepper.observe`, its mean), and each state is decoded from the
+    first frame's viewpoint, held still. The transition takes no viewpoint, so what changes
+    is the object; the decoder's blur is in it, as in the open loop it is compared with."""
+    st = _with_temperature(Stepper(model.cpu().eval()), 0.0)
+    idx = starts[:, None] + np.arange(length)[None]
+    x = torch.from_numpy(data.rgba[idx]).permute(0, 1, 4, 2, 3).float() / 255.0     # (B, L, 4, S, S)
+    v = torch.from_numpy(data.views[idx])
+    h, z = st.start(x[:, 0], v[:, 0])
+    frames = []
+    for t in range(1, length):
+        h, z = st.observe(h, z, x[:, t], v[:, t])
+        frames.append(st.decode(h, z, v[:, 0]))
+    return motion_energy(premultiply(torch.stack(frames)).numpy())
+
+
+@torch.no_grad()
+def still_view_energy(model: Rssm, data: SequenceData, starts: np.ndarray, length: int, temperature: float,
+                      samples: int = 2, seed: int = 0) -> float:
+    """Energy per step of ``samples`` open-loop rollouts at ``temperature`` from each of the
+    frames ``starts``, each at its own viewpoint held still for ``length - 1`` steps."""
+    first = torch.from_numpy(data.rgba[starts]).permute(0, 3, 1, 2).float().repeat(samples, 1, 1, 1) / 255.0
+    views = torch.from_numpy(data.views[starts])[:, None].expand(-1, length, -1).repeat(samples, 1, 1)
+    torch.manual_seed(seed)
+    frames = rollout(Stepper(model.cpu().eval(), temperature), first, views.contiguous())     # (B, T, 4, S, S)
+    return motion_energy(premultiply(frames.transpose(0, 1)).numpy())
+
+
+def calibrate_temperature(model: Rssm, data: SequenceData, steps: int = 150, count: int = 4, samples: int = 2,
+                          temperatures: tuple[float, ...] = CALIBRATION_TEMPERATURES, seed: int = 0) -> Calibration:
+    """The sampling temperature at which the open loop, at a still viewpoint, moves as much as
+    the footage's own motion as the model sees it (:func:`still_view_target`).
+
+    The stochastic state carries the object's motion that the deterministic path does not: at
+    temperature 0 the rollouts settle, and their energy grows with the temperature. How much
+    it grows differs between captures and runs (1.6x the truth's at 1 on one capture, 0.7x on
+    another, docs/benchmarks.md), so no fixed temperature fits them all. The energies at
+    ``temperatures`` are interpolated to meet the target; outside them the nearest one is kept
+    (noted). Footage without a run of consecutive training frames gets :data:`RUN_TEMPERATURE`.
+    """
+    starts, length = long_training_runs(data, steps, count)
+    if len(starts) == 0:
+        return Calibration(RUN_TEMPERATURE, None, {}, [], 0,
+                           f"no run of {data.length} consecutive training frames: temperature {RUN_TEMPERATURE:g} kept")
+    target = still_view_target(model, data, starts, length)
+    energy = {float(t): still_view_energy(model, data, starts, length, t, samples, seed) for t in temperatures}
+    ts = np.array(sorted(energy))
+    es = np.maximum.accumulate(np.array([energy[t] for t in ts]))     # interp needs it non-decreasing
+    note = None
+    if target <= es[0]:
+        temp, note = float(ts[0]), f"the open loop moves more than the footage even at temperature {ts[0]:g}"
+    elif target >= es[-1]:
+        temp, note = float(ts[-1]), f"the open loop moves less than the footage even at temperature {ts[-1]:g}"
+    else:
+        temp = float(np.interp(target, es, ts))
+    return Calibration(temp, target, energy, [int(s) for s in starts], length - 1, note)
+
+
 def write_figures(report: EvalReport, figs: dict, history: list[dict], folder: Path) -> None:
     """``plots.png`` (per-step PSNR/SSIM, motion energy, losses), ``strip.png``, ``rollout.png``."""
     import matplotlib
@@ -1886,9 +1999,8 @@ def train_run(dataset: Path, out: Path, cfg: RssmConfig, tcfg: TrainConfig, resu
     """Train on ``dataset`` and write the run folder ``out`` atomically; returns run.json.
 
     ``temperature``: the stepper's sampling temperature (scales the prior's std at run time;
-    None: :data:`RUN_TEMPERATURE`).
+    None: fitted to the footage, :func:`calibrate_temperature`).
     """
-    temperature = RUN_TEMPERATURE if temperature is None else float(temperature)
     out = Path(out)
     check_run_output(out, overwrite, resume)
     tcfg = replace(tcfg, minutes=training_minutes(tcfg.minutes, tcfg.steps, default=15.0))
@@ -1929,10 +2041,13 @@ def train_run(dataset: Path, out: Path, cfg: RssmConfig, tcfg: TrainConfig, resu
 
 
 def write_run(out: Path, state: TrainState, data: SequenceData, dataset: Path, tcfg: TrainConfig,
-              ckpt: Path, wall: float, temperature: float = RUN_TEMPERATURE) -> dict:
+              ckpt: Path, wall: float, temperature: float | None = None) -> dict:
+    """The run folder of a trained state; ``temperature`` None: calibrated (run.json says how)."""
     model = state.run_model()           # checkpoint.pt keeps the last weights (for --resume)
     sel = state.selection
     cfg = model.cfg
+    cal = calibrate_temperature(model, data) if temperature is None else None
+    temperature = cal.temperature if cal is not None else float(temperature)
     with atomic_dir(out, overwrite=True) as tmp:
         shutil.copyfile(ckpt, tmp / "checkpoint.pt")
         torch.save({"config": asdict(cfg), "state_dict": model.state_dict()}, tmp / "model.pt")
@@ -1949,7 +2064,8 @@ def write_run(out: Path, state: TrainState, data: SequenceData, dataset: Path, t
                                 "step": "(h, z, view (B,3)) -> (h, z, rgba (B,4,S,S) straight RGBA 0..1)"},
                         "view": "[azimuth_deg, elevation_deg, distance_m] of the camera from the object centre "
                                 "(crops.json viewpoint)",
-                        "frame_size": cfg.size, "fps": _fps(data), "temperature": temperature},
+                        "frame_size": cfg.size, "fps": _fps(data), "temperature": temperature,
+                        "temperature_calibration": None if cal is None else cal.to_json()},
             "checkpoint": "checkpoint.pt",
             "selection": None if sel is None else sel.summary(),
             "training": {"steps": state.step, "seconds": round(state.seconds, 1),
@@ -1998,11 +2114,13 @@ def load_model(run: Path) -> Rssm:
     return model.eval()
 
 
-def eval_run(run: Path, dataset: Path | None = None, temperature: float | None = None) -> EvalReport:
+def eval_run(run: Path, dataset: Path | None = None, temperature: float | None = None,
+             calibrate: bool = False) -> EvalReport:
     """Re-run the evaluation of a run folder (on its own dataset unless ``dataset`` is given).
 
     Rewrites ``report/`` and the ``eval`` entry of ``run.json`` in place; a new ``temperature``
-    also rewrites ``stepper.ts`` and the stepper's temperature in ``run.json``.
+    (or ``calibrate``: fit it again, :func:`calibrate_temperature`) also rewrites ``stepper.ts``
+    and the stepper's temperature in ``run.json``.
     """
     run = Path(run)
     model = load_model(run)
@@ -2013,8 +2131,14 @@ def eval_run(run: Path, dataset: Path | None = None, temperature: float | None =
     history = torch.load(ck, map_location="cpu", weights_only=False)["history"] if ck.is_file() else []
     tmp = run / ".report.partial"
     shutil.rmtree(tmp, ignore_errors=True)
-    if temperature is None:
+    if calibrate:
+        cal = calibrate_temperature(model, data)
+        temperature = cal.temperature
+        meta["stepper"]["temperature_calibration"] = cal.to_json()
+    elif temperature is None:
         temperature = float(meta["stepper"].get("temperature", 1.0))
+    elif temperature != meta["stepper"].get("temperature", 1.0):
+        meta["stepper"]["temperature_calibration"] = None      # set by hand
     report = run_eval(model, data, tmp, history, temperature=temperature)
     if temperature != meta["stepper"].get("temperature", 1.0):
         ts = run / ".stepper.ts.partial"

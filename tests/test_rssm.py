@@ -180,6 +180,9 @@ def test_run_folder_cli_resume_and_eval(crops, tmp_path):
         assert (out / f).is_file(), f
     meta = json.loads((out / "run.json").read_text())
     assert meta["training"]["steps"] == 3 and meta["model"]["config"]["size"] == 32
+    cal = meta["stepper"]["temperature_calibration"]       # fitted to the footage by default
+    assert cal["steps"] >= 10 and cal["temperature"] == meta["stepper"]["temperature"]
+    assert "run-time temperature" in r.output
     ev = meta["eval"]
     assert ev["split"] == "train" and len(ev["psnr_db"]["model"]) == 10
     assert set(ev["mean_psnr_db"]) == {"model", "model_mean", "near", "copy_first"}
@@ -193,9 +196,17 @@ def test_run_folder_cli_resume_and_eval(crops, tmp_path):
     assert ts.step(h, z, torch.zeros(1, 3))[2].shape == (1, 4, 32, 32)
     r = CliRunner().invoke(cli.main, ["rssm-eval", str(out), "--temperature", "0.5"])
     assert r.exit_code == 0, r.output
-    assert json.loads((out / "run.json").read_text())["stepper"]["temperature"] == 0.5
+    st = json.loads((out / "run.json").read_text())["stepper"]
+    assert st["temperature"] == 0.5 and st["temperature_calibration"] is None     # set by hand
     assert torch.jit.load(str(out / "stepper.ts")).temperature == 0.5
     assert not (out / ".report.partial").exists() and (out / "report" / "eval.json").is_file()
+    r = CliRunner().invoke(cli.main, ["rssm-eval", str(out), "--calibrate"])
+    assert r.exit_code == 0, r.output
+    st = json.loads((out / "run.json").read_text())["stepper"]
+    assert st["temperature_calibration"]["temperature"] == st["temperature"]
+    assert torch.jit.load(str(out / "stepper.ts")).temperature == st["temperature"]
+    r = CliRunner().invoke(cli.main, ["rssm-eval", str(out), "--calibrate", "--temperature", "1"])
+    assert r.exit_code == 2 and "not both" in r.output
     # Settings other than the defaults, by name; a wrong one is one clear line.
     r = CliRunner().invoke(cli.main, ["rssm", str(crops.root), "-o", str(tmp_path / "acc"), "--size", "32",
                                       "--steps", "2", "--batch", "2", "--threads", "1", "--set", "compose=accum",
@@ -1154,3 +1165,59 @@ def test_dynamics_horizon_gives_the_latent_steps_longer_windows(data, monkeypatc
     assert seen == {"full": [data.length] * 2, "latent": [long_len] * 4}
     with pytest.raises(rssm.DbbError, match="dynamics_horizon"):
         rssm.TrainConfig(dynamics_horizon=0).validate()
+
+
+def _moving_model(seed: int = 4) -> rssm.Rssm:
+    torch.manual_seed(seed)
+    m = rssm.Rssm(DEFAULTS).eval()
+    with torch.no_grad():
+        for p in m.parameters():
+            p.add_(0.05 * torch.randn_like(p))      # moving, not the initial zero flow
+    return m
+
+
+def test_observe_and_decode_follow_the_footage_in_torchscript_as_eager(data):
+    m = _moving_model()
+    x = torch.from_numpy(data.rgba[:4]).permute(0, 3, 1, 2).float()[None] / 255.0     # (1, 4, 4, S, S)
+    v = torch.from_numpy(data.views[:4])[None]
+    outs = []
+    for st in (rssm.Stepper(m, 0.0), rssm.script_stepper(m, 0.0)):
+        h, z = st.start(x[:, 0], v[:, 0])
+        frames = []
+        for t in range(1, 4):
+            h, z = st.observe(h, z, x[:, t], v[:, t])
+            frames.append(st.decode(h, z, v[:, 0]))
+        outs.append(torch.stack(frames))
+    assert torch.allclose(outs[0], outs[1], atol=1e-5)
+    # The posterior reads the frames: other footage, other states.
+    st = rssm.Stepper(m, 0.0)
+    h, z = st.start(x[:, 0], v[:, 0])
+    assert not torch.allclose(st.observe(h, z, x[:, 1], v[:, 1])[1], st.observe(h, z, 1 - x[:, 1], v[:, 1])[1])
+
+
+def test_calibrated_temperature_moves_the_still_view_as_much_as_the_footage(data, monkeypatch):
+    m = _moving_model()
+    cal = rssm.calibrate_temperature(m, data, steps=20, count=2)
+    assert cal.steps >= data.length - 1 and len(cal.starts) >= 1
+    assert all(data.splits[s:s + cal.steps + 1].tolist() == ["train"] * (cal.steps + 1) for s in cal.starts)
+    starts, n = np.array(cal.starts), cal.steps + 1
+    assert cal.target == pytest.approx(rssm.still_view_target(m, data, starts, n))
+    es = [cal.energy[t] for t in sorted(cal.energy)]
+    assert es[-1] > 1.2 * es[0]                     # sampling moves it
+    # Footage between what the temperatures tried give: the fitted one meets it.
+    mid = 0.5 * (cal.energy[0.5] + cal.energy[2.0])
+    monkeypatch.setattr(rssm, "still_view_target", lambda *a: mid)
+    fit = rssm.calibrate_temperature(m, data, steps=20, count=2)
+    assert 0.5 < fit.temperature < 2.0 and fit.note is None
+    assert rssm.still_view_energy(m, data, starts, n, fit.temperature) == pytest.approx(mid, rel=0.25)
+    # Beyond them: the nearest one, said so.
+    monkeypatch.setattr(rssm, "still_view_target", lambda *a: 2 * es[-1])
+    hot = rssm.calibrate_temperature(m, data, steps=20, count=2)
+    monkeypatch.setattr(rssm, "still_view_target", lambda *a: 0.0)
+    cold = rssm.calibrate_temperature(m, data, steps=20, count=2)
+    assert hot.temperature == max(rssm.CALIBRATION_TEMPERATURES) and "less than the footage" in hot.note
+    assert cold.temperature == min(rssm.CALIBRATION_TEMPERATURES) and "more than the footage" in cold.note
+    # No run of consecutive training frames: the fixed default, said so.
+    alternate = replace(data, splits=np.where(np.arange(len(data.splits)) % 2 == 0, "train", "test"))
+    none = rssm.calibrate_temperature(m, alternate)
+    assert none.temperature == rssm.RUN_TEMPERATURE and none.target is None and "consecutive" in none.note
