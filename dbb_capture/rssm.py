@@ -1919,8 +1919,14 @@ def calibrate_temperature(model: Rssm, data: SequenceData, steps: int = 150, cou
     if len(starts) == 0:
         return Calibration(RUN_TEMPERATURE, None, {}, [], 0,
                            f"no run of {data.length} consecutive training frames: temperature {RUN_TEMPERATURE:g} kept")
-    target = still_view_target(model, data, starts, length)
-    energy = {float(t): still_view_energy(model, data, starts, length, t, samples, seed) for t in temperatures}
+    energy = {}
+    with progress(transient=True) as prog:
+        task = prog.add_task("fit temperature", total=len(temperatures) + 1, info="")
+        target = still_view_target(model, data, starts, length)
+        for t in temperatures:
+            prog.update(task, advance=1, info=f"temperature {t:g}")
+            energy[float(t)] = still_view_energy(model, data, starts, length, t, samples, seed)
+        prog.update(task, advance=1)
     ts = np.array(sorted(energy))
     es = np.maximum.accumulate(np.array([energy[t] for t in ts]))     # interp needs it non-decreasing
     note = None
