@@ -705,11 +705,7 @@ def test_stepper_upsamples_with_phase_convolutions_exactly():
 def test_fast_default_step_is_the_general_step():
     # The default stepper ("accum", relative views) encodes the view changes from the angles;
     # the general path encodes each view and takes differences (view_delta_encoding), as training.
-    torch.manual_seed(4)
-    m = rssm.Rssm(DEFAULTS).eval()
-    with torch.no_grad():
-        for p in m.parameters():
-            p.add_(0.05 * torch.randn_like(p))      # moving, not the initial zero flow
+    m = _moving_model()
     first, views = torch.rand(2, 4, 32, 32), torch.rand(2, 7, 3) * 300 - 150
     fast, general = rssm.Stepper(m), rssm.Stepper(m)
     general.fast_views = False
