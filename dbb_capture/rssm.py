@@ -1152,7 +1152,7 @@ class Stepper(nn.Module):
 
     @torch.jit.export
     def start(self, rgba: torch.Tensor, view: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        pm = torch.cat([rgba[:, :3] * rgba[:, 3:4], rgba[:, 3:4]], 1)
+        pm = premultiply(rgba)
         emb = self.encoder(pm)
         if self.skip:
             self.ctx = self.encoder.features(pm)
@@ -1204,7 +1204,7 @@ class Stepper(nn.Module):
         """Filtering instead of forecasting: the next state after seeing frame ``rgba`` (straight
         RGBA (B, 4, S, S)) from ``view``, z the posterior's mean. Nothing is decoded."""
         h = self.gru(self.z_in(z), h)
-        pm = torch.cat([rgba[:, :3] * rgba[:, 3:4], rgba[:, 3:4]], 1)
+        pm = premultiply(rgba)
         mean, raw = self.post(torch.cat([h, self.encoder(pm), self._pe(view)], -1)).chunk(2, -1)
         return h, mean
 
