@@ -162,6 +162,10 @@ class RssmConfig:
                                    # along the open loop to the frames' (this weight, relative): a
                                    # regression alone lets a forecast settle (bench/momentum_toy.py;
                                    # on the pendulum's 16 keypoints no gain, 16th round)
+    osc: int = 0                   # > 0: this many damped rotations (complex modes, LRU-style) take 2 x osc
+                                   # of the deter units beside the GRU (OscCell): a state that rings at
+                                   # its own frequency keeps a swing going after the trained horizon, where
+                                   # a GRU's forecast settles (pendulum, seventeenth round)
     keypoint_prior: bool = False   # the keypoint error also reads each filtering step's prior mean
                                    # (h_t, its forecast before frame t is seen): one-step forecasts of
                                    # where the part goes, teacher forced (pendulum: no gain, 16th round)
@@ -206,6 +210,8 @@ class RssmConfig:
             raise DbbError("RSSM open_loop_samples must be at least 1")
         if self.keypoints < 0:
             raise DbbError(f"RSSM keypoints must be >= 0, not {self.keypoints}")
+        if self.osc < 0 or 2 * self.osc >= self.deter:
+            raise DbbError(f"RSSM osc must be >= 0 and leave GRU units (2 x osc < deter {self.deter}), not {self.osc}")
 
     @classmethod
     def from_json(cls, d: dict) -> RssmConfig:
@@ -668,6 +674,37 @@ def _gauss(stats: torch.Tensor, min_std: float) -> tuple[torch.Tensor, torch.Ten
     return mean, F.softplus(raw) + min_std
 
 
+class OscCell(nn.Module):
+    """A GRU cell beside ``n`` damped rotations, one recurrent state (B, units + 2n): [gru, re, im].
+
+    Each mode k turns by ``theta_k`` radians a step and keeps ``exp(-exp(nu_k))`` of its length;
+    the input drives the modes, the GRU reads them. Initialised near the unit circle (keeps
+    0.97-0.999 a step) with periods of 6-120 steps, so a mode rings long after the trained horizon.
+    Same call as ``nn.GRUCell``: ``cell(x, h) -> h``."""
+
+    def __init__(self, input_size: int, units: int, n: int):
+        super().__init__()
+        self.n = n
+        self.units = units
+        self.cell = nn.GRUCell(input_size + 2 * n, units)
+        self.drive = nn.Linear(input_size, 2 * n, bias=False)   # rings about 0
+        g = torch.Generator().manual_seed(0)
+        keep = 0.97 + 0.029 * torch.rand(n, generator=g)
+        self.nu = nn.Parameter(torch.log(-torch.log(keep)))
+        self.theta = nn.Parameter(2 * math.pi / torch.exp(torch.empty(n).uniform_(math.log(6.0), math.log(120.0), generator=g)))
+        with torch.no_grad():
+            self.drive.weight.mul_(0.1)
+
+    def forward(self, x: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+        g, re, im = h[:, :self.units], h[:, self.units:self.units + self.n], h[:, self.units + self.n:]
+        keep = torch.exp(-torch.exp(self.nu))
+        c, s = keep * torch.cos(self.theta), keep * torch.sin(self.theta)
+        d_re, d_im = self.drive(x).chunk(2, -1)
+        re, im = c * re - s * im + d_re, s * re + c * im + d_im
+        g = self.cell(torch.cat([x, re, im], -1), g)
+        return torch.cat([g, re, im], -1)
+
+
 class Rssm(nn.Module):
     """The model. The transition (``gru``, ``prior``) takes no viewpoint input at all."""
 
@@ -678,7 +715,8 @@ class Rssm(nn.Module):
         self.encoder = Encoder(cfg)
         self.decoder = Decoder(cfg)
         self.z_in = nn.Sequential(nn.Linear(cfg.stoch, cfg.hidden), nn.SiLU())
-        self.gru = nn.GRUCell(cfg.hidden, cfg.deter)
+        self.gru = (OscCell(cfg.hidden, cfg.deter - 2 * cfg.osc, cfg.osc) if cfg.osc
+                    else nn.GRUCell(cfg.hidden, cfg.deter))
         self.prior = nn.Sequential(nn.Linear(cfg.deter, cfg.hidden), nn.SiLU(), nn.Linear(cfg.hidden, 2 * cfg.stoch))
         self.post = nn.Sequential(nn.Linear(cfg.deter + cfg.embed + 2 * cfg.keypoints + 4 * cfg.view_freqs, cfg.hidden), nn.SiLU(),
                                   nn.Linear(cfg.hidden, 2 * cfg.stoch))

@@ -1217,3 +1217,35 @@ def test_calibrated_temperature_moves_the_still_view_as_much_as_the_footage(data
     alternate = replace(data, splits=np.where(np.arange(len(data.splits)) % 2 == 0, "train", "test"))
     none = rssm.calibrate_temperature(m, alternate)
     assert none.temperature == rssm.RUN_TEMPERATURE and none.target is None and "consecutive" in none.note
+
+
+def test_oscillator_modes_ring_after_the_input_stops_and_script_as_eager(tmp_path):
+    cfg = replace(DEFAULTS, deter=24, osc=4)
+    m = rssm.Rssm(cfg).eval()
+    cell = m.gru
+    assert isinstance(cell, rssm.OscCell) and cell.cell.hidden_size == 16
+    # One kick, then no input: the modes keep turning (a GRU's state settles to a fixed point).
+    with torch.no_grad():
+        h = cell(torch.randn(1, cfg.hidden), torch.zeros(1, cfg.deter))
+        zero = torch.zeros(1, cfg.hidden)
+        modes = []
+        for _ in range(60):
+            h = cell(zero, h)
+            modes.append(h[0, 16:].clone())
+        modes = torch.stack(modes)
+    keep = torch.exp(-torch.exp(cell.nu))
+    re, im = modes[:, :4], modes[:, 4:]
+    amp = torch.sqrt(re ** 2 + im ** 2)
+    assert torch.allclose(amp[-1], amp[0] * keep ** 59, rtol=1e-4)            # damped only by keep
+    assert (modes[1:] - modes[:-1]).abs().sum(1).min() > 1e-3 * modes.abs().sum(1).max()   # still turning
+    # The stepper carries the modes in h: TorchScript as eager.
+    path = tmp_path / "stepper.ts"
+    rssm.script_stepper(m).save(str(path))
+    ts = torch.jit.load(str(path))
+    first, views = torch.rand(1, 4, 32, 32), torch.rand(1, 6, 3) * 60
+    torch.manual_seed(7)
+    eager = rssm.rollout(rssm.Stepper(m), first, views)
+    torch.manual_seed(7)
+    assert torch.allclose(eager, rssm.rollout(ts, first, views), atol=1e-5)
+    with pytest.raises(rssm.DbbError, match="osc"):
+        replace(DEFAULTS, deter=16, osc=8).validate()
