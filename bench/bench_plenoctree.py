@@ -275,17 +275,25 @@ def resplit_crops(dataset: Path, out: Path, every: int) -> Path:
 def error_parts(img_rgba: np.ndarray, gt: np.ndarray) -> dict[str, float]:
     """Where a render's error on white lies, per pixel sums over one view (divide by pixels):
     squared error on white where the truth's alpha is 0 (< 0.01: "room"), 1 (> 0.99: "core")
-    and between ("rim"); squared alpha error; squared premultiplied-colour error (= on black);
+    and between ("rim"), and of room and core the part within 1.5 px of the outline
+    ("room_edge", "core_edge"); squared alpha error; squared premultiplied-colour error (= on black);
     the render's alpha summed over the room and its transparency over the core.
     ``img_rgba`` / ``gt`` straight RGBA (H, W, 4) in [0, 1]."""
+    import cv2
+
     a, at = img_rgba[..., 3], gt[..., 3]
     pm, pmt = img_rgba[..., :3] * a[..., None], gt[..., :3] * at[..., None]
     se = (((pm + 1 - a[..., None]) - (pmt + 1 - at[..., None])) ** 2).mean(-1)
     room, core = at < 0.01, at > 0.99
     rim = ~room & ~core
+    # The outline's own band: room and core pixels within 1.5 px of the other regions (the
+    # "_edge" parts are shares of "room" and "core", not further regions).
+    def edge(m: np.ndarray) -> np.ndarray:
+        return m & (cv2.distanceTransform(m.astype(np.uint8), cv2.DIST_L2, 3) < 1.5)
     return {"px": float(a.size), "px_room": float(room.sum()), "px_core": float(core.sum()),
             "se_white_room": float(se[room].sum()), "se_white_core": float(se[core].sum()),
-            "se_white_rim": float(se[rim].sum()), "se_alpha": float(((a - at) ** 2).sum()),
+            "se_white_rim": float(se[rim].sum()), "se_white_room_edge": float(se[edge(room)].sum()),
+            "se_white_core_edge": float(se[edge(core)].sum()), "se_alpha": float(((a - at) ** 2).sum()),
             "se_premult": float(((pm - pmt) ** 2).mean(-1).sum()), "alpha_on_room": float(a[room].sum()),
             "holes_in_core": float((1 - a[core]).sum())}
 
@@ -295,7 +303,7 @@ def summarize_parts(parts: list[dict[str, float]]) -> dict[str, float]:
     whole), alpha and premultiplied-colour MSE, mean alpha over the room, mean 1 - alpha over the core."""
     t = {k: sum(p[k] for p in parts) for k in parts[0]}
     n = t["px"]
-    out = {f"mse_white_{k}": t[f"se_white_{k}"] / n for k in ("room", "core", "rim")}
+    out = {f"mse_white_{k}": t[f"se_white_{k}"] / n for k in ("room", "core", "rim", "room_edge", "core_edge")}
     out |= {"mse_alpha": t["se_alpha"] / n, "mse_premult": t["se_premult"] / n,
             "mean_alpha_on_room": t["alpha_on_room"] / max(t["px_room"], 1),
             "mean_holes_in_core": t["holes_in_core"] / max(t["px_core"], 1),

@@ -1,5 +1,6 @@
 """Metrics the benchmarks report (bench/), checked on frames whose answer is known."""
 import importlib.util
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -22,3 +23,26 @@ def test_travel_scores_a_swing_not_flicker():
     still += rng.normal(0, 0.03, still.shape)          # flicker: about the spot's squared difference
     assert abs(bench_rssm.travel(swing, bg) - 20 / np.sqrt(2)) < 1.5
     assert bench_rssm.travel(still, bg) < 1.0
+
+
+sys.path.insert(0, str(Path(__file__).parents[1] / "bench"))     # bench_plenoctree imports its neighbour `common`
+_spec_p = importlib.util.spec_from_file_location("bench_plenoctree", Path(__file__).parents[1] / "bench" / "bench_plenoctree.py")
+bench_plenoctree = importlib.util.module_from_spec(_spec_p)
+_spec_p.loader.exec_module(bench_plenoctree)
+
+
+def test_error_parts_put_an_outline_one_pixel_off_in_its_edge_bands():
+    """A grey disc drawn one pixel to the right of the truth's: the error lies in the room and
+    core pixels next to the outline and the rim, none deeper in either."""
+    yy, xx = np.mgrid[:64, :64]
+    def disc(cx):
+        a = np.clip(12.5 - np.hypot(yy - 32, xx - cx), 0, 1)      # antialiased edge, radius 12
+        return np.dstack([np.full((64, 64, 3), 0.3), a])
+    gt, img = disc(32.0), disc(33.0)
+    p = bench_plenoctree.summarize_parts([bench_plenoctree.error_parts(img, gt)])
+    whole = p["mse_white_room"] + p["mse_white_core"] + p["mse_white_rim"]
+    assert whole > 0
+    assert p["mse_white_room"] > 0 and np.isclose(p["mse_white_room_edge"], p["mse_white_room"])
+    assert p["mse_white_core"] > 0 and np.isclose(p["mse_white_core_edge"], p["mse_white_core"])
+    same = bench_plenoctree.summarize_parts([bench_plenoctree.error_parts(gt, gt)])
+    assert same["mse_white_room_edge"] == same["mse_white_core_edge"] == 0
