@@ -166,6 +166,8 @@ class RssmConfig:
                                    # of the deter units beside the GRU (OscCell): a state that rings at
                                    # its own frequency keeps a swing going after the trained horizon, where
                                    # a GRU's forecast settles (pendulum, seventeenth round)
+    osc_keep_min: float = 0.0      # floor of each mode's kept length a step (e.g. 0.99: rings ~100 steps);
+                                   # trained freely the modes learn to damp within 10-50 steps
     keypoint_prior: bool = False   # the keypoint error also reads each filtering step's prior mean
                                    # (h_t, its forecast before frame t is seen): one-step forecasts of
                                    # where the part goes, teacher forced (pendulum: no gain, 16th round)
@@ -210,6 +212,8 @@ class RssmConfig:
             raise DbbError("RSSM open_loop_samples must be at least 1")
         if self.keypoints < 0:
             raise DbbError(f"RSSM keypoints must be >= 0, not {self.keypoints}")
+        if not 0.0 <= self.osc_keep_min < 1.0:
+            raise DbbError(f"RSSM osc_keep_min must be in [0, 1), not {self.osc_keep_min}")
         if self.osc < 0 or 2 * self.osc >= self.deter:
             raise DbbError(f"RSSM osc must be >= 0 and leave GRU units (2 x osc < deter {self.deter}), not {self.osc}")
 
@@ -680,11 +684,12 @@ class OscCell(nn.Module):
     Each mode k turns by ``theta_k`` radians a step and keeps ``exp(-exp(nu_k))`` of its length;
     the input drives the modes, the GRU reads them. Initialised near the unit circle (keeps
     0.97-0.999 a step) with periods of 6-120 steps, so a mode rings long after the trained horizon.
-    Same call as ``nn.GRUCell``: ``cell(x, h) -> h``."""
+    ``keep_min`` floors the kept length. Same call as ``nn.GRUCell``: ``cell(x, h) -> h``."""
 
-    def __init__(self, input_size: int, units: int, n: int):
+    def __init__(self, input_size: int, units: int, n: int, keep_min: float = 0.0):
         super().__init__()
         self.n = n
+        self.keep_min = keep_min
         self.units = units
         self.cell = nn.GRUCell(input_size + 2 * n, units)
         self.drive = nn.Linear(input_size, 2 * n, bias=False)   # rings about 0
@@ -697,7 +702,7 @@ class OscCell(nn.Module):
 
     def forward(self, x: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
         g, re, im = h[:, :self.units], h[:, self.units:self.units + self.n], h[:, self.units + self.n:]
-        keep = torch.exp(-torch.exp(self.nu))
+        keep = torch.exp(-torch.exp(self.nu)).clamp(min=self.keep_min)
         c, s = keep * torch.cos(self.theta), keep * torch.sin(self.theta)
         d_re, d_im = self.drive(x).chunk(2, -1)
         re, im = c * re - s * im + d_re, s * re + c * im + d_im
@@ -715,7 +720,7 @@ class Rssm(nn.Module):
         self.encoder = Encoder(cfg)
         self.decoder = Decoder(cfg)
         self.z_in = nn.Sequential(nn.Linear(cfg.stoch, cfg.hidden), nn.SiLU())
-        self.gru = (OscCell(cfg.hidden, cfg.deter - 2 * cfg.osc, cfg.osc) if cfg.osc
+        self.gru = (OscCell(cfg.hidden, cfg.deter - 2 * cfg.osc, cfg.osc, cfg.osc_keep_min) if cfg.osc
                     else nn.GRUCell(cfg.hidden, cfg.deter))
         self.prior = nn.Sequential(nn.Linear(cfg.deter, cfg.hidden), nn.SiLU(), nn.Linear(cfg.hidden, 2 * cfg.stoch))
         self.post = nn.Sequential(nn.Linear(cfg.deter + cfg.embed + 2 * cfg.keypoints + 4 * cfg.view_freqs, cfg.hidden), nn.SiLU(),

@@ -1249,3 +1249,9 @@ def test_oscillator_modes_ring_after_the_input_stops_and_script_as_eager(tmp_pat
     assert torch.allclose(eager, rssm.rollout(ts, first, views), atol=1e-5)
     with pytest.raises(rssm.DbbError, match="osc"):
         replace(DEFAULTS, deter=16, osc=8).validate()
+    # A floor on the kept length holds whatever the trained rate says.
+    floored = rssm.Rssm(replace(cfg, osc_keep_min=0.999)).gru
+    with torch.no_grad():
+        floored.nu.fill_(5.0)                                  # exp(-exp(5)): nothing kept
+        h = floored(torch.zeros(1, cfg.hidden), torch.cat([torch.zeros(1, 16), torch.ones(1, 8)], 1))
+    assert torch.allclose(torch.sqrt(h[0, 16:20] ** 2 + h[0, 20:] ** 2), torch.full((4,), 0.999 * 2 ** 0.5))
