@@ -1887,7 +1887,8 @@ class Calibration:
     """
 
     temperature: float
-    target: float | None                  # the footage's own motion, as the model sees it
+    target: float | None                  # the footage's own motion, as the model sees it (a fixed
+                                          # camera's: as the footage has it)
     energy: dict[float, float]            # still-view open-loop energy at each temperature tried
     starts: list[int]
     steps: int
@@ -1921,10 +1922,14 @@ def still_view_target(model: Rssm, data: SequenceData, starts: np.ndarray, lengt
     """Energy per step of the footage's own motion as the model sees it: the posterior follows
     the real frames (:meth:`Stepper.observe`, its mean), and each state is decoded from the
     first frame's viewpoint, held still. The transition takes no viewpoint, so what changes
-    is the object; the decoder's blur is in it, as in the open loop it is compared with."""
-    st = _with_temperature(Stepper(model.cpu().eval()), 0.0)
+    is the object; the decoder's blur is in it, as in the open loop it is compared with.
+    A fixed camera's footage is itself seen from a still viewpoint: its own change is the
+    target there (frames 1 to L-1, as the open loop's)."""
     idx = starts[:, None] + np.arange(length)[None]
     x = torch.from_numpy(data.rgba[idx]).permute(0, 1, 4, 2, 3).float() / 255.0     # (B, L, 4, S, S)
+    if fixed_camera(data):
+        return motion_energy(premultiply(x[:, 1:].transpose(0, 1)).numpy())
+    st = _with_temperature(Stepper(model.cpu().eval()), 0.0)
     v = torch.from_numpy(data.views[idx])
     h, z = st.start(x[:, 0], v[:, 0])
     frames = []

@@ -1219,6 +1219,17 @@ def test_calibrated_temperature_moves_the_still_view_as_much_as_the_footage(data
     assert none.temperature == rssm.RUN_TEMPERATURE and none.target is None and "consecutive" in none.note
 
 
+def test_a_fixed_camera_fits_the_temperature_to_the_footage_itself(data):
+    """Its footage is seen from a still viewpoint: its own change is the target."""
+    m = _moving_model()
+    starts, n = rssm.long_training_runs(data, 20, 2)
+    fixed = replace(data, views=np.repeat(data.views[:1], len(data.views), 0))
+    assert rssm.fixed_camera(fixed) and not rssm.fixed_camera(data)
+    frames = fixed.rgba[starts[:, None] + np.arange(1, n)[None]].astype(np.float32) / 255.0      # (B, L-1, S, S, 4)
+    pm = np.concatenate([frames[..., :3] * frames[..., 3:], frames[..., 3:]], -1)
+    assert rssm.still_view_target(m, fixed, starts, n) == pytest.approx(np.abs(np.diff(pm, axis=1)).mean(), rel=1e-4)
+
+
 def test_oscillator_modes_ring_after_the_input_stops_and_script_as_eager(tmp_path):
     cfg = replace(DEFAULTS, deter=24, osc=4)
     m = rssm.Rssm(cfg).eval()
