@@ -165,7 +165,7 @@ class RssmConfig:
     osc: int = 0                   # > 0: this many damped rotations (complex modes, LRU-style) take 2 x osc
                                    # of the deter units beside the GRU (OscCell): a state that rings at
                                    # its own frequency keeps a swing going after the trained horizon, where
-                                   # a GRU's forecast settles (pendulum, seventeenth round)
+                                   # a GRU's forecast settles (pendulum, twenty-first round)
     osc_keep_min: float = 0.0      # floor of each mode's kept length a step (e.g. 0.99: rings ~100 steps);
                                    # trained freely the modes learn to damp within 10-50 steps
     keypoint_prior: bool = False   # the keypoint error also reads each filtering step's prior mean
@@ -700,9 +700,13 @@ class OscCell(nn.Module):
         with torch.no_grad():
             self.drive.weight.mul_(0.1)
 
+    def kept(self) -> torch.Tensor:
+        """The share of each mode's length kept a step (n,)."""
+        return torch.exp(-torch.exp(self.nu)).clamp(min=self.keep_min)
+
     def forward(self, x: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
         g, re, im = h[:, :self.units], h[:, self.units:self.units + self.n], h[:, self.units + self.n:]
-        keep = torch.exp(-torch.exp(self.nu)).clamp(min=self.keep_min)
+        keep = self.kept()
         c, s = keep * torch.cos(self.theta), keep * torch.sin(self.theta)
         d_re, d_im = self.drive(x).chunk(2, -1)
         re, im = c * re - s * im + d_re, s * re + c * im + d_im
