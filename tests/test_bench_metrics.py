@@ -5,9 +5,20 @@ from pathlib import Path
 
 import numpy as np
 
-_spec = importlib.util.spec_from_file_location("bench_rssm", Path(__file__).parents[1] / "bench" / "bench_rssm.py")
-bench_rssm = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(bench_rssm)
+BENCH = Path(__file__).parents[1] / "bench"
+sys.path.insert(0, str(BENCH))      # the bench scripts import their neighbour `common`
+
+
+def _bench(name: str):
+    """A bench script loaded as a module (bench/ is not a package)."""
+    spec = importlib.util.spec_from_file_location(name, BENCH / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+bench_rssm = _bench("bench_rssm")
+bench_plenoctree = _bench("bench_plenoctree")
 
 
 def test_travel_scores_a_swing_not_flicker():
@@ -23,12 +34,6 @@ def test_travel_scores_a_swing_not_flicker():
     still += rng.normal(0, 0.03, still.shape)          # flicker: about the spot's squared difference
     assert abs(bench_rssm.travel(swing, bg) - 20 / np.sqrt(2)) < 1.5
     assert bench_rssm.travel(still, bg) < 1.0
-
-
-sys.path.insert(0, str(Path(__file__).parents[1] / "bench"))     # bench_plenoctree imports its neighbour `common`
-_spec_p = importlib.util.spec_from_file_location("bench_plenoctree", Path(__file__).parents[1] / "bench" / "bench_plenoctree.py")
-bench_plenoctree = importlib.util.module_from_spec(_spec_p)
-_spec_p.loader.exec_module(bench_plenoctree)
 
 
 def test_error_parts_put_an_outline_one_pixel_off_in_its_edge_bands():
