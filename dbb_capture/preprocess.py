@@ -748,8 +748,11 @@ def fixed_camera_stage(ctx: StageContext, _previous: Any = None) -> CropsOutput:
         center = ray / np.linalg.norm(ray)
         up = np.array([0.0, -1.0, 0.0])
         c2w = np.eye(4)
-        c = (size - 1) / 2
-        cam = CropCamera(Intrinsics(size, size, f_crop, f_crop, c, c), c2w, viewpoint(np.zeros(3), center, up), side)
+        # The crop is a plain window of the nominal camera's frame: the same camera, its principal
+        # point moved with the window (so the object centre projects to the crop's centre).
+        s = size / side
+        cx, cy = (info.width / 2 - x) * s - 0.5, (info.height / 2 - y) * s - 0.5
+        cam = CropCamera(Intrinsics(size, size, f_crop, f_crop, cx, cy), c2w, viewpoint(np.zeros(3), center, up), side)
         radius = float(np.sin(np.arctan(side * cfg.crop_fill / 2 / f_src)))
         (out / "crops").mkdir()
         splits = split_by_time(np.array([info.times[i] for i in indices]), cfg.test_fraction)

@@ -12,7 +12,7 @@ from click.testing import CliRunner
 
 from dbb_capture.background import (BackgroundConfig, LayerField, PosedView, RayBank, new_field, parallax_coverage,
                                     pinhole_rays, train_background)
-from dbb_capture.cameras import look_at, opencv_from_opengl
+from dbb_capture.cameras import Intrinsics, look_at, opencv_from_opengl, project_points
 from dbb_capture.cli.capture import main
 from dbb_capture.crops import crop_camera, crop_maps, object_crop, up_from_cameras
 from dbb_capture.io import open_footage
@@ -50,8 +50,6 @@ def test_fast_render_equals_volume_rendering():
 
 
 def _intr():
-    from dbb_capture.cameras import Intrinsics
-
     return Intrinsics(320, 240, 260.0, 260.0, 159.5, 119.5)
 
 
@@ -192,6 +190,12 @@ def test_fixed_camera_mode_mattes_a_moving_ball(tmp_path):
     crops = json.loads((ds / "crops.json").read_text())
     assert len(crops["frames"]) == 30 and crops["fixed_camera"]["window"] == [40, 30, 80]
     assert len({json.dumps(f["viewpoint"]) for f in crops["frames"]}) == 1   # one constant viewpoint
+    # The recorded crop camera is the one the window's pixels came from: the object centre (on the
+    # window's centre ray, below the frame's) projects to the crop's centre, the ball to its place.
+    f0 = crops["frames"][0]
+    intr = Intrinsics(f0["w"], f0["h"], f0["fl_x"], f0["fl_y"], f0["cx"], f0["cy"])
+    c2w = opencv_from_opengl(np.array(f0["transform_matrix"]))
+    assert np.allclose(project_points(np.array([crops["object"]["center"]]), c2w, intr), 39.5, atol=1e-6)
     ious = []
     for f, t in zip(crops["frames"], truth):
         a = cv2.imread(str(ds / f["file_path"]), cv2.IMREAD_UNCHANGED)[..., 3] > 127
