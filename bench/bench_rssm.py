@@ -353,7 +353,7 @@ def overrides(pairs: list[str]) -> tuple[rssm.RssmConfig, rssm.TrainConfig]:
 
 def quality(dataset: Path, run: Path, capture: Path | None, minutes: float, steps: int | None, batch: int,
             lr: float, temperature: float | None, train: bool, settings: list[str] = (),
-            start_frame: int | None = None, resume: bool = False, preset: str = "auto") -> dict:
+            start_frame: int | None = None, resume: bool = False) -> dict:
     """Train on a preprocess dataset (unless ``train`` is off), then evaluate with the still-view truth.
 
     ``temperature`` None: the run's own, fitted to the footage (``rssm.calibrate_temperature``;
@@ -370,10 +370,8 @@ def quality(dataset: Path, run: Path, capture: Path | None, minutes: float, step
         t = time.perf_counter()
         cfg, tcfg = overrides(list(settings))
         tcfg = replace(tcfg, minutes=minutes, steps=steps, batch=batch, lr=lr)
-        meta = rssm.train_run(dataset, run, cfg, tcfg, overwrite=not resume, resume=resume, temperature=temperature,
-                              preset=preset, given=[p.partition("=")[0] for p in settings])
+        meta = rssm.train_run(dataset, run, cfg, tcfg, overwrite=not resume, resume=resume, temperature=temperature)
         out["settings"] = list(settings)
-        out["preset"] = meta["model"]["preset"]
         out.update({"train_steps": meta["training"]["steps"],
                     "train_minutes": round(meta["training"]["seconds"] / 60, 2),
                     "wall_minutes_train_and_eval": round((time.perf_counter() - t) / 60, 2),
@@ -446,8 +444,6 @@ def main() -> None:
     q.add_argument("--resume", action="store_true", help="train an existing run further (to --minutes in all)")
     q.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                    help="a RssmConfig or TrainConfig setting other than its default (repeatable)")
-    q.add_argument("--preset", default="auto", choices=["auto", *rssm.PRESETS],
-                   help="model settings by the kind of footage, as dbb-train rssm --preset (default auto)")
     q.add_argument("--start-frame", type=int, default=None,
                    help="fixed-camera footage: start the still-view rollout at this frame (default: the report's)")
     f = sub.add_parser("first-step", help="what the run-time first step loses: its candidates, mask and flow")
@@ -508,7 +504,7 @@ def main() -> None:
         out = [{**speed(int(s), a.steps, a.set, a.repeat), "settings": a.set} for s in a.sizes.split(",")]
     else:
         out = quality(a.dataset, a.run, a.capture, a.minutes, a.steps, a.batch, a.lr, a.temperature, not a.no_train,
-                      a.set, a.start_frame, a.resume, a.preset)
+                      a.set, a.start_frame, a.resume)
     print(json.dumps(out, indent=2))
 
 

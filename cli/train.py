@@ -106,15 +106,10 @@ def plenoctree(dataset, out, minutes, steps, downscale, resume, overwrite, mode,
                    "the object does in the footage (run.json: stepper.temperature_calibration).")
 @click.option("--resume", is_flag=True, help="Continue from the run's last checkpoint.")
 @click.option("--overwrite", is_flag=True, help="Replace the run folder if it exists.")
-@click.option("--preset", type=click.Choice(["auto", "plain", "swing"]), default="auto", show_default=True,
-              help="Model settings by the kind of footage: swing (a small part swinging, filmed from a fixed "
-                   "camera), plain (the defaults), auto (swing for fixed-camera footage, else plain). "
-                   "--set overrides any of them.")
 @click.option("--set", "settings", multiple=True, metavar="NAME=VALUE",
               help="A model or training setting other than its default, e.g. compose=accum (repeatable; "
                    "docs/commands/rssm.md lists them).")
-def rssm(dataset, out, minutes, steps, size, batch, threads, seed, temperature, resume, overwrite, preset,
-         settings) -> None:
+def rssm(dataset, out, minutes, steps, size, batch, threads, seed, temperature, resume, overwrite, settings) -> None:
     """Dynamic object: train a viewpoint-conditioned RSSM video predictor on DATASET (crops.json).
 
     Writes the weights, a TorchScript stepper and the evaluation (per-step PSNR/SSIM of 10-step
@@ -129,8 +124,7 @@ def rssm(dataset, out, minutes, steps, size, batch, threads, seed, temperature, 
         torch.set_num_threads(threads)
     cfg, tcfg = configs_from_settings(list(settings), RssmConfig(size=int(size)),
                                       TrainConfig(minutes, steps, batch=batch, seed=seed))
-    meta = train_run(dataset, out, cfg, tcfg, resume=resume, overwrite=overwrite, temperature=temperature,
-                     preset=preset, given=[p.partition("=")[0] for p in settings])
+    meta = train_run(dataset, out, cfg, tcfg, resume=resume, overwrite=overwrite, temperature=temperature)
     _print_rssm(out, meta["eval"], f"{meta['training']['steps']} steps in {meta['training']['seconds'] / 60:.1f} min")
 
 

@@ -40,7 +40,7 @@ import shutil
 import time
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
-from typing import Collection, List
+from typing import List
 
 import cv2
 import numpy as np
@@ -333,36 +333,6 @@ def configs_from_settings(pairs: list[str], cfg: RssmConfig | None = None,
         else:
             tcfg = replace(tcfg, **{name: v})
     return cfg, tcfg
-
-
-# Settings by the kind of footage, under any the user gives (``train_run(preset=...)``, the command's
-# ``--preset``). "plain" is the defaults above, measured on the synthetic dynamic captures, where
-# they meet the bars. "swing" is for a small part that swings in footage from a fixed camera
-# (preprocess --crop-window): the plain model reads a 5-px ball from its conv stack's flattened
-# embedding, which all but ignores it, and its forecast settles within ~30 steps, so it does not
-# keep a pendulum swinging (ratio 0.13 at its temperature's cap). These add spatial-softmax
-# keypoints that the state must predict, the accumulated warp that holds a moved part's look,
-# a sharpness match and N damped rotations in the deterministic state that keep ringing past the
-# trained horizon (docs/benchmarks.md, RSSM, fifteenth, twenty-first and twenty-second rounds).
-PRESETS: dict[str, tuple[str, ...]] = {
-    "plain": (),
-    "swing": ("compose=accum", "warp_leak=0.1", "warp_leak_fps=10", "energy_scale=100", "sharp_scale=100",
-              "keypoints=16", "keypoint_scale=100", "keypoints_frozen=true",
-              "osc=16", "deter=96", "osc_keep_min=0.999"),
-}
-
-
-def with_preset(cfg: RssmConfig, data: SequenceData, name: str = "auto",
-                given: Collection[str] = ()) -> tuple[RssmConfig, str]:
-    """``cfg`` with the settings of preset ``name`` for ``data``, except those named in ``given``
-    (the caller's own choices), and the preset's name. "auto" is "swing" for fixed-camera footage
-    (:func:`fixed_camera`), "plain" otherwise; any other name must be one of :data:`PRESETS`."""
-    if name == "auto":
-        name = "swing" if fixed_camera(data) else "plain"
-    if name not in PRESETS:
-        raise DbbError(f"unknown RSSM preset {name!r}: expected auto or one of {', '.join(PRESETS)}")
-    cfg, _ = configs_from_settings([p for p in PRESETS[name] if p.partition("=")[0] not in given], cfg)
-    return cfg, name
 
 
 # --------------------------------------------------------------------------- viewpoint encoding
@@ -2083,15 +2053,11 @@ def _grid(rows: list[np.ndarray]) -> np.ndarray:
 
 # --------------------------------------------------------------------------- run folder
 def train_run(dataset: Path, out: Path, cfg: RssmConfig, tcfg: TrainConfig, resume: bool = False,
-              overwrite: bool = False, quiet: bool = False, temperature: float | None = None,
-              preset: str | None = None, given: Collection[str] = ()) -> dict:
+              overwrite: bool = False, quiet: bool = False, temperature: float | None = None) -> dict:
     """Train on ``dataset`` and write the run folder ``out`` atomically; returns run.json.
 
     ``temperature``: the stepper's sampling temperature (scales the prior's std at run time;
     None: fitted to the footage, :func:`calibrate_temperature`).
-    ``preset`` (a name of :data:`PRESETS` or "auto", :func:`with_preset`): its settings go into
-    ``cfg``, except those named in ``given`` (the settings the caller chose itself). None: ``cfg``
-    as given. A resumed run keeps its checkpoint's model.
     """
     out = Path(out)
     check_run_output(out, overwrite, resume)
@@ -2103,11 +2069,9 @@ def train_run(dataset: Path, out: Path, cfg: RssmConfig, tcfg: TrainConfig, resu
     if resume:
         state = TrainState.load(resume_checkpoint(out), tcfg, device)
         cfg = state.model.cfg
-    data = load_sequences(dataset, cfg.size)
-    if preset is not None and state is None:
-        cfg, preset = with_preset(cfg, data, preset, given)
     cfg.validate()
     tcfg.validate()
+    data = load_sequences(dataset, cfg.size)
     torch.manual_seed(tcfg.seed)
     if state is None:
         cfg = leak_at_frame_rate(cfg, _fps(data))
@@ -2129,24 +2093,14 @@ def train_run(dataset: Path, out: Path, cfg: RssmConfig, tcfg: TrainConfig, resu
 
         state = train(state, data, tcfg, ckpt, on_step)
         prog.update(task, completed=100)
-    meta = write_run(out, state, data, dataset, tcfg, ckpt, wall=time.perf_counter() - t0, temperature=temperature,
-                     preset=preset if not resume else _run_preset(out))
+    meta = write_run(out, state, data, dataset, tcfg, ckpt, wall=time.perf_counter() - t0, temperature=temperature)
     shutil.rmtree(work, ignore_errors=True)
     return meta
 
 
-def _run_preset(out: Path) -> str | None:
-    """The preset an earlier session of the run folder ``out`` recorded (None: none or unknown)."""
-    try:
-        return read_json(Path(out) / "run.json")["model"].get("preset")
-    except (DbbError, KeyError, AttributeError):
-        return None
-
-
 def write_run(out: Path, state: TrainState, data: SequenceData, dataset: Path, tcfg: TrainConfig,
-              ckpt: Path, wall: float, temperature: float | None = None, preset: str | None = None) -> dict:
-    """The run folder of a trained state; ``temperature`` None: calibrated (run.json says how);
-    ``preset``: the name of the settings preset the model was built with, for the record."""
+              ckpt: Path, wall: float, temperature: float | None = None) -> dict:
+    """The run folder of a trained state; ``temperature`` None: calibrated (run.json says how)."""
     model = state.run_model()           # checkpoint.pt keeps the last weights (for --resume)
     sel = state.selection
     cfg = model.cfg
@@ -2162,7 +2116,7 @@ def write_run(out: Path, state: TrainState, data: SequenceData, dataset: Path, t
             "dataset": str(Path(dataset).resolve()), "dataset_file": data.source.name,
             "object": data.meta.get("object"), "up": data.meta.get("up"),
             "crop": {"size": data.meta.get("crop_size"), "fill": data.meta.get("crop_fill")},
-            "model": {"file": "model.pt", "type": "rssm", "preset": preset, "config": asdict(cfg)},
+            "model": {"file": "model.pt", "type": "rssm", "config": asdict(cfg)},
             "stepper": {"file": "stepper.ts", "format": "TorchScript",
                         "api": {"start": "(rgba (B,4,S,S) straight RGBA 0..1, view (B,3)) -> (h, z)",
                                 "step": "(h, z, view (B,3)) -> (h, z, rgba (B,4,S,S) straight RGBA 0..1)"},

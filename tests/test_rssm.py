@@ -196,7 +196,6 @@ def test_run_folder_cli_resume_and_eval(crops, tmp_path):
     meta2 = rssm.train_run(crops.root, out, SMALL, rssm.TrainConfig(steps=5, batch=2), resume=True, quiet=True)
     assert meta2["training"]["steps"] == 5 and meta2["training"]["final"]["step"] == 5
     assert meta2["model"]["config"] == meta["model"]["config"]       # resumed, not restarted with SMALL
-    assert meta["model"]["preset"] == meta2["model"]["preset"] == "plain"   # the board's moving viewpoint
     ts = torch.jit.load(str(out / "stepper.ts"))
     h, z = ts.start(torch.rand(1, 4, 32, 32), torch.zeros(1, 3))
     assert ts.step(h, z, torch.zeros(1, 3))[2].shape == (1, 4, 32, 32)
@@ -1234,20 +1233,6 @@ def test_a_fixed_camera_fits_the_temperature_to_the_footage_itself(data):
     frames = fixed.rgba[starts[:, None] + np.arange(1, n)[None]].astype(np.float32) / 255.0      # (B, L-1, S, S, 4)
     pm = np.concatenate([frames[..., :3] * frames[..., 3:], frames[..., 3:]], -1)
     assert rssm.still_view_target(m, fixed, starts, n) == pytest.approx(np.abs(np.diff(pm, axis=1)).mean(), rel=1e-4)
-
-
-def test_fixed_camera_footage_gets_the_swing_preset_under_the_given_settings(data):
-    fixed = replace(data, views=np.repeat(data.views[:1], len(data.views), 0))
-    cfg, name = rssm.with_preset(SMALL, fixed, "auto", given=["osc_keep_min"])
-    assert name == "swing"
-    assert (cfg.osc, cfg.deter, cfg.keypoints, cfg.compose) == (16, 96, 16, "accum")
-    assert cfg.osc_keep_min == SMALL.osc_keep_min                  # the caller's own choice stays
-    assert cfg.stoch == SMALL.stoch                                # what the preset does not name stays
-    cfg.validate()
-    assert rssm.with_preset(SMALL, data, "auto") == (SMALL, "plain")        # a moving viewpoint
-    assert rssm.with_preset(SMALL, data, "swing")[0].osc == 16              # asked for by name
-    with pytest.raises(DbbError, match="preset"):
-        rssm.with_preset(SMALL, data, "wobble")
 
 
 def test_oscillator_modes_ring_after_the_input_stops_and_script_as_eager(tmp_path):
