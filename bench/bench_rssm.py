@@ -265,6 +265,18 @@ def travel(frames: np.ndarray, background: np.ndarray) -> float:
     return spread(centroids(frames, background))
 
 
+def path_distance(points: np.ndarray, path: np.ndarray) -> float:
+    """Mean distance from each of ``points`` (T, 2) to the nearest of ``path`` (U, 2), in their units.
+
+    With the truth's :func:`centroids` as ``points`` and a rollout's as ``path`` it says how far
+    the places the truth's moving part visits lie from anywhere the rollout takes it (its "miss");
+    the other way round, how far the rollout strays from the truth's path. Both ignore timing, so
+    a swing along the truth's arc at another phase scores ~0; a part that shakes where it started,
+    or slides another way, misses the places the truth reaches by their distance."""
+    d = np.sqrt(((points[:, None, :] - path[None, :, :]) ** 2).sum(-1))
+    return float(d.min(1).mean())
+
+
 def spread(points: np.ndarray) -> float:
     """RMS distance of ``points`` (T, 2) from their mean, in their units."""
     return float(np.sqrt(((points - points.mean(0)) ** 2).sum(1).mean()))
@@ -283,12 +295,15 @@ def motion(run: Path, dataset: Path, still: dict, temperatures: list[float] = (0
     A rollout whose motion comes from the deterministic path moves at temperature 0; one whose
     motion is only the prior's noise freezes there and moves in proportion to the temperature.
     ``travel_px`` per rollout (:func:`travel`, against the truth's per-pixel median): whether the
-    motion carries a part across the frame, beside the truth's."""
+    motion carries a part across the frame, beside the truth's; ``miss_px`` and ``stray_px``
+    (:func:`path_distance` between the rollout's and the truth's centroids): whether it carries it
+    where the truth's goes (travel alone counts a part sliding the wrong way as a swing)."""
     model = (model if model is not None else rssm.load_model(run)).eval()
     truth = rssm._pm_np(still["truth"])
     n = len(truth)
     t_e = np.abs(np.diff(truth.astype(np.float64), axis=0)).mean(axis=(1, 2, 3))       # (n - 1,)
     background = np.median(truth, axis=0)
+    truth_path = centroids(truth, background)
     blocks = [(a, b) for a, b in ((0, 9), (9, 29), (29, 74), (74, n - 1)) if b <= n - 1 and a < b]
     f0 = torch.from_numpy(still["first"][None]).permute(0, 3, 1, 2).float() / 255.0
     views = torch.from_numpy(np.asarray(still["view"], np.float32)[None, None]).expand(-1, n + 1, -1).contiguous()
@@ -300,10 +315,13 @@ def motion(run: Path, dataset: Path, still: dict, temperatures: list[float] = (0
             long = rssm._pm_np(rssm.rollout(rssm.Stepper(model, temp), f0, views)[0].permute(0, 2, 3, 1).numpy())
             p_e = np.abs(np.diff(long.astype(np.float64), axis=0)).mean(axis=(1, 2, 3))
             coh = rssm.motion_coherence(long)
+            path = centroids(long, background)
             rows.append({"ratio": [round(float(p_e[a:b].mean() / t_e[a:b].mean()), 3) for a, b in blocks]
                          + [round(float(p_e.mean() / t_e.mean()), 3)],
                          "coherence": None if coh is None else round(coh, 3),
-                         "travel_px": round(travel(long, background), 2)})
+                         "travel_px": round(spread(path), 2),
+                         "miss_px": round(path_distance(truth_path, path), 2),
+                         "stray_px": round(path_distance(path, truth_path), 2)})
         out["per_temperature"][f"{temp:g}"] = rows
     out["truth_coherence"] = round(rssm.motion_coherence(truth), 3)
     out["truth_travel_px"] = round(travel(truth, background), 2)

@@ -36,6 +36,18 @@ def test_travel_scores_a_swing_not_flicker():
     assert bench_rssm.travel(still, bg) < 1.0
 
 
+def test_path_distance_finds_a_part_that_moves_elsewhere_whatever_the_phase():
+    """A swing along the truth's row at another phase misses nothing; a spot that slides up from
+    the swing's start instead misses the row's far places, and strays from the row as it climbs."""
+    t = np.arange(60)
+    truth = np.stack([np.full(60, 32.0), 30 + 20 * np.sin(2 * np.pi * t / 30)], 1)      # (y, x)
+    late = np.stack([np.full(60, 32.0), 30 + 20 * np.sin(2 * np.pi * (t + 7) / 30)], 1)
+    climb = np.stack([32.0 - t / 6, np.full(60, 30.0)], 1)
+    assert bench_rssm.path_distance(truth, late) < 0.5 and bench_rssm.path_distance(late, truth) < 0.5
+    assert bench_rssm.path_distance(truth, climb) > 8.0          # the swing's ends are never reached
+    assert bench_rssm.path_distance(climb, truth) > 4.0          # and the climb leaves the row
+
+
 def test_error_parts_put_an_outline_one_pixel_off_in_its_edge_bands():
     """A grey disc drawn one pixel to the right of the truth's: the error lies in the room and
     core pixels next to the outline and the rim, none deeper in either."""
