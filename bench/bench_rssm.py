@@ -324,7 +324,7 @@ def motion(run: Path, dataset: Path, still: dict, temperatures: list[float] = (0
                          "stray_px": round(path_distance(path, truth_path), 2)})
         out["per_temperature"][f"{temp:g}"] = rows
     out["truth_coherence"] = round(rssm.motion_coherence(truth), 3)
-    out["truth_travel_px"] = round(travel(truth, background), 2)
+    out["truth_travel_px"] = round(spread(truth_path), 2)
     data = rssm.load_sequences(dataset, model.cfg.size)
     starts = data.starts("test")[:64]
     x, v = rssm._batch(data, starts, torch.device("cpu"))                              # premultiplied
