@@ -185,7 +185,7 @@ def first_step(run: Path, dataset: Path, split: str = "test", temperature: float
     h1 = model.transition(h0, z0)
     pm, ps = model.prior_stats(h1)
     z1 = pm + temperature * ps * torch.randn_like(ps)
-    ctx = model.encoder.features(x[:, 0])
+    ctx = model.encoder.context(x[:, 0])
     dec = model.decoder
     feat = rssm.decoder_features(h1, z1, pe[:, 1], pe[:, 0], cfg.skip, cfg.decoder_view, cfg.view_freqs,
                                  pe[:, 0] if dec.accum else None)

@@ -171,6 +171,18 @@ class RssmConfig:
     keypoint_prior: bool = False   # the keypoint error also reads each filtering step's prior mean
                                    # (h_t, its forecast before frame t is seen): one-step forecasts of
                                    # where the part goes, teacher forced (pendulum: no gain, 16th round)
+    keypoint_maps: bool = False    # (needs keypoint_scale) the decoder draws from keypoints: Gaussian maps
+                                   # of the keypoints its state predicts (kp_head) and, with skip, of the
+                                   # context frame's join its layers (Minderer et al. 2019), so a small
+                                   # part can be drawn where the state puts it, far from where the
+                                   # context frame shows it (a warp moves it a few pixels at most)
+    keypoint_map_std: float = 0.08  # those maps' std in [-1, 1] frame units (0.08: 2.6 px at 64 px);
+                                   # at least half a cell at each coarser layer
+    keypoint_warp: bool = False    # (needs keypoint_maps, compose accum) a second warp, moved by keypoints
+                                   # (first-order motion, Siarohin et al. 2019): near each keypoint the
+                                   # state predicts, the context frame is read from around the context's
+                                   # keypoint, so a part goes wherever the state says in one step, not
+                                   # a pixel or two a step; a learned mask blends it with the accumulated warp
 
     def validate(self) -> None:
         if self.size not in SIZES:
@@ -212,6 +224,12 @@ class RssmConfig:
             raise DbbError("RSSM open_loop_samples must be at least 1")
         if self.keypoints < 0:
             raise DbbError(f"RSSM keypoints must be >= 0, not {self.keypoints}")
+        if self.keypoint_maps and self.keypoint_scale <= 0:
+            raise DbbError("RSSM keypoint_maps needs keypoint_scale > 0 (and keypoints > 0)")
+        if self.keypoint_warp and not (self.keypoint_maps and self.compose == "accum" and self.skip):
+            raise DbbError("RSSM keypoint_warp needs keypoint_maps and compose accum")
+        if self.keypoint_map_std <= 0:
+            raise DbbError(f"RSSM keypoint_map_std must be > 0, not {self.keypoint_map_std}")
         if not 0.0 <= self.osc_keep_min < 1.0:
             raise DbbError(f"RSSM osc_keep_min must be in [0, 1), not {self.osc_keep_min}")
         if self.osc < 0 or 2 * self.osc >= self.deter:
@@ -431,12 +449,43 @@ def warp_maps(maps: list[torch.Tensor], grid: torch.Tensor) -> list[torch.Tensor
     g = grid.permute(0, 3, 1, 2)
     out: list[torch.Tensor] = []
     for m in maps[::-1]:
+        if m.dim() != 4:                       # the context's keypoints (Encoder.context): as they are
+            out.append(m)
+            continue
         r = m.shape[-1]
         while g.shape[-1] > r:                 # sizes are powers of two (RssmConfig.validate)
             g = F.avg_pool2d(g, 2)
         out.append(F.grid_sample(m, g.permute(0, 2, 3, 1), mode="bilinear", padding_mode="border",
                                  align_corners=False))
     return out[::-1]
+
+
+def keypoint_maps(kp: torch.Tensor, r: int, std: float) -> torch.Tensor:
+    """Keypoints (N, 2K) as :class:`SpatialSoftmax` gives them (K x, then K y, in [-1, 1]) ->
+    Gaussian maps (N, K, r, r) at the pixel centres of an r x r grid, peak 1; the std is at
+    least half a cell (2 / r frame units a cell), so a coarse map still sees the point."""
+    k = kp.shape[1] // 2
+    s = max(std, 1.0 / r)
+    c = (torch.arange(r, dtype=kp.dtype, device=kp.device) + 0.5) * (2.0 / r) - 1.0
+    gx = torch.exp(-0.5 * ((c - kp[:, :k, None]) / s) ** 2)             # (N, K, r)
+    gy = torch.exp(-0.5 * ((c - kp[:, k:, None]) / s) ** 2)
+    return gy[:, :, :, None] * gx[:, :, None, :]
+
+
+def keypoint_warp(kp: torch.Tensor, ctx_kp: torch.Tensor, base: torch.Tensor, std: float,
+                  background: float = 1e-3) -> torch.Tensor:
+    """Where to read the context frame so its parts stand at keypoints ``kp`` (N, 2K) when they
+    stood at ``ctx_kp`` (N, 2K) in it: (N, S, S, 2) grid_sample coordinates, ``base`` the identity
+    grid (1, S, S, 2). Each pixel moves by its keypoints' displacements (ctx_kp - kp) weighted by
+    their Gaussian maps (:func:`keypoint_maps`) against a ``background`` weight that stays put,
+    so a disc about 3.5 std in radius around each keypoint moves rigidly with it (first-order motion
+    model, zeroth order)."""
+    k = kp.shape[1] // 2
+    m = keypoint_maps(kp, base.shape[1], std)                          # (N, K, S, S)
+    w = m / (m.sum(1, keepdim=True) + background)
+    d = ctx_kp - kp
+    shift = torch.stack([(w * d[:, :k, None, None]).sum(1), (w * d[:, k:, None, None]).sum(1)], -1)
+    return base + shift
 
 
 # --------------------------------------------------------------------------- networks
@@ -490,6 +539,8 @@ class Encoder(nn.Module):
         # Keypoints over the first (finest) feature map; None keeps earlier runs' weights loadable.
         self.keypoints = (SpatialSoftmax(_enc_channels(cfg)[0], cfg.keypoints, cfg.size // 2)
                           if cfg.keypoints > 0 else None)
+        self.maps = bool(cfg.keypoint_maps)
+        self.map_std = float(cfg.keypoint_map_std)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         maps = self.features(x)                  # coarsest first: the last is the finest
@@ -508,6 +559,16 @@ class Encoder(nn.Module):
             i += 1
         return maps
 
+    def context(self, x: torch.Tensor) -> list[torch.Tensor]:
+        """What the decoder's skip path reads of a context frame (B, 4, S, S): :meth:`features`,
+        with ``keypoint_maps`` each joined by the Gaussian maps of the frame's keypoints, and the
+        keypoints themselves (B, 2K) last."""
+        maps = self.features(x)
+        if not self.maps or self.keypoints is None:
+            return maps
+        kp = self.keypoints(maps[-1])
+        return [torch.cat([m, keypoint_maps(kp, m.shape[-1], self.map_std)], 1) for m in maps] + [kp]
+
 
 class Decoder(nn.Module):
     """Features (B, deter + stoch + 4 * view_freqs [+ 4 * view_freqs of the context view with
@@ -524,6 +585,8 @@ class Decoder(nn.Module):
     anywhere in the frame over many steps while the frame stays one resampling of the context
     frame; the context maps are moved along (:func:`warp_maps`), so the decoder sees where
     things are now; it starts as the context frame exactly (zero flow, mask ~95 % warp).
+    With ``keypoint_maps`` each layer also reads Gaussian maps of the keypoints that ``kp_net``
+    reads from the state (h, z), the first deter + stoch features.
     """
 
     def __init__(self, cfg: RssmConfig):
@@ -545,8 +608,15 @@ class Decoder(nn.Module):
         self.fc = nn.Sequential(nn.Linear(cfg.deter + cfg.stoch + n_pe, cfg.hidden), nn.SiLU(),
                                 nn.Linear(cfg.hidden, ch[0] * 16))
         enc = _enc_channels(cfg)[::-1] if self.skip else [0] * len(ch)      # at 4, 8, ..., S/2
+        self.n_state = cfg.deter + cfg.stoch
+        self.map_std = float(cfg.keypoint_map_std)
+        self.kp_net = (nn.Sequential(nn.Linear(self.n_state, cfg.hidden), nn.SiLU(),
+                                     nn.Linear(cfg.hidden, 2 * cfg.keypoints)) if cfg.keypoint_maps else None)
+        if cfg.keypoint_maps:             # the state's keypoints, and (skip) the context's in its maps
+            enc = [c + cfg.keypoints * (1 + int(self.skip)) for c in enc]
         # RGBA, then mask logit(s) (copy3: copy, warp, generate; blend: warp), then flow x, y.
-        n_out = (9 if self.copy3 else 7) if self.skip else 4
+        self.kp_warp = bool(cfg.keypoint_warp)
+        n_out = (9 if self.copy3 else 7 + int(self.kp_warp)) if self.skip else 4
         self.ups = nn.ModuleList([nn.ConvTranspose2d(c_in + c_skip, c_out, 4, 2, 1)
                                   for c_in, c_skip, c_out in zip(ch, enc, ch[1:] + [n_out])])
         # Pixel-centre sampling grid of grid_sample (align_corners=False), (1, S, S, 2) as (x, y).
@@ -559,6 +629,8 @@ class Decoder(nn.Module):
                 last.bias[4] = 3.0 if self.copy3 or self.accum else 1.0     # ~90-95 % copy at the start
                 if self.accum:            # zero flow: the first steps are the context frame exactly
                     last.weight[:, 5:7] = 0.0
+                if self.kp_warp:          # the keypoints' warp starts at a 5 % share
+                    last.bias[7] = -3.0
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kw):
         # Runs written before the skip path: ``convs`` was a Sequential (conv, SiLU, conv, ...).
@@ -567,14 +639,23 @@ class Decoder(nn.Module):
             state_dict[f"{prefix}ups.{int(i) // 2}.{name}"] = state_dict.pop(k)
         super()._load_from_state_dict(state_dict, prefix, *args, **kw)
 
-    def heads(self, feat: torch.Tensor, ctx: list[torch.Tensor]) -> torch.Tensor:
-        """The last layer's output (N, 4 | 7 | 9, S, S) before any compositing (see ``forward``)."""
+    def state_keypoints(self, feat: torch.Tensor) -> torch.Tensor:
+        """``keypoint_maps``: the keypoints (N, 2K) the state (feat's first deter + stoch) puts the parts at."""
+        if self.kp_net is None:
+            return feat.new_zeros(feat.shape[0], 0)
+        return self.kp_net(feat[:, :self.n_state])
+
+    def heads(self, feat: torch.Tensor, ctx: list[torch.Tensor], kp: torch.Tensor) -> torch.Tensor:
+        """The last layer's output (N, 4 | 7 | 8 | 9, S, S) before any compositing (see ``forward``);
+        ``kp`` the state's keypoints (:meth:`state_keypoints`)."""
         x = F.silu(self.fc(feat).view(-1, self.c0, 4, 4))
         n = len(self.ups)
         i = 0
         for up in self.ups:
             if self.skip:
                 x = torch.cat([x, ctx[i]], 1)
+            if self.kp_net is not None:
+                x = torch.cat([x, keypoint_maps(kp, x.shape[-1], self.map_std)], 1)
             x = up(x)
             if i < n - 1:
                 x = F.silu(x)
@@ -586,12 +667,17 @@ class Decoder(nn.Module):
         """``compose="accum"``: the next frame (N, 4, S, S) premultiplied and its warp (N, S, S, 2),
         from the current frame's warp ``grid`` (the identity grid before the first step) and the
         context's maps ``ctx`` and pixels ``ctx_pm`` (as ``forward``)."""
-        x = self.heads(feat, warp_maps(ctx, grid))
+        kp = self.state_keypoints(feat)
+        x = self.heads(feat, warp_maps(ctx, grid), kp)
         s = torch.sigmoid(x[:, :5])                               # RGBA and the warp's share
         gen = torch.cat([s[:, :3] * s[:, 3:4], s[:, 3:4]], 1)
         flow = snap_flow(torch.tanh(x[:, 5:7]) * self.max_step_flow, self.flow_snap)
         grid = accumulated_warp(grid, flow, self.grid, self.warp_leak)
-        warped = F.grid_sample(ctx_pm, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+        read = grid
+        if self.kp_warp:                  # not accumulated: the next step starts from the flows' grid
+            kg = keypoint_warp(kp, ctx[-1], self.grid.to(x.dtype), self.map_std)
+            read = torch.lerp(grid, kg, torch.sigmoid(x[:, 7:8]).permute(0, 2, 3, 1))
+        warped = F.grid_sample(ctx_pm, read, mode="bilinear", padding_mode="zeros", align_corners=False)
         return torch.lerp(gen, warped, snap_mask(s[:, 4:5], self.mask_snap)), grid
 
     def forward(self, feat: torch.Tensor, ctx: list[torch.Tensor], ctx_pm: torch.Tensor) -> torch.Tensor:
@@ -600,7 +686,7 @@ class Decoder(nn.Module):
         one step from the context frame, :meth:`accum_step` from the identity grid.)"""
         if self.accum:
             return self.accum_step(feat, ctx, ctx_pm, self.grid.expand(feat.shape[0], -1, -1, -1))[0]
-        x = self.heads(feat, ctx)
+        x = self.heads(feat, ctx, self.state_keypoints(feat))
         if not self.skip:
             rgba = torch.sigmoid(x)
             return torch.cat([rgba[:, :3] * rgba[:, 3:4], rgba[:, 3:4]], 1)
@@ -730,7 +816,9 @@ class Rssm(nn.Module):
         self.post = nn.Sequential(nn.Linear(cfg.deter + cfg.embed + 2 * cfg.keypoints + 4 * cfg.view_freqs, cfg.hidden), nn.SiLU(),
                                   nn.Linear(cfg.hidden, 2 * cfg.stoch))
         # Training only (keypoint_scale): the keypoints of a state's frame; None keeps old runs loadable.
-        self.kp_head = (nn.Sequential(nn.Linear(cfg.deter + cfg.stoch, cfg.hidden), nn.SiLU(),
+        # With keypoint_maps it is the decoder's own (one head: the maps are drawn where it says).
+        self.kp_head = (self.decoder.kp_net if cfg.keypoint_maps else
+                        nn.Sequential(nn.Linear(cfg.deter + cfg.stoch, cfg.hidden), nn.SiLU(),
                                       nn.Linear(cfg.hidden, 2 * cfg.keypoints)) if cfg.keypoint_scale > 0 else None)
         if cfg.keypoints_frozen and self.encoder.keypoints is not None:
             self.encoder.keypoints.requires_grad_(False)
@@ -924,7 +1012,7 @@ def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[to
     pe = view_encoding(views, cfg.view_freqs)
     emb = model.encoder(x.flatten(0, 1)).view(B, T1, -1)
     # Context of every decoded frame: frame 0's encoder maps, pixels and viewpoint, n rows per sequence.
-    ctx0 = model.encoder.features(x[:, 0]) if cfg.skip else []
+    ctx0 = model.encoder.context(x[:, 0]) if cfg.skip else []
 
     def decode(h: torch.Tensor, z: torch.Tensor, ts: torch.Tensor, reps: int = 1) -> torch.Tensor:
         """Frames ``ts`` of every sequence from states (reps * B, len(ts), .) -> (reps * B * len(ts), 4, S, S);
@@ -1202,7 +1290,7 @@ class Stepper(nn.Module):
         pm = premultiply(rgba)
         emb = self.encoder(pm)
         if self.skip:
-            self.ctx = self.encoder.features(pm)
+            self.ctx = self.encoder.context(pm)
             self.ctx_pm = pm
             self.ctx_view = view
             self.prev_view = view

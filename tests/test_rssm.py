@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
 from dbb_capture import rssm
 from dbb_capture.errors import DbbError
@@ -1264,3 +1265,71 @@ def test_oscillator_modes_ring_after_the_input_stops_and_script_as_eager(tmp_pat
         floored.nu.fill_(5.0)                                  # exp(-exp(5)): nothing kept
         h = floored(torch.zeros(1, cfg.hidden), torch.cat([torch.zeros(1, 16), torch.ones(1, 8)], 1))
     assert torch.allclose(torch.sqrt(h[0, 16:20] ** 2 + h[0, 20:] ** 2), torch.full((4,), 0.999 * 2 ** 0.5))
+
+
+def test_keypoint_maps_peak_at_the_keypoint_at_every_scale():
+    kp = torch.tensor([[-0.45, 0.3, 0.7, -0.1]])                 # K = 2: x = (-0.45, 0.3), y = (0.7, -0.1)
+    for r in (4, 8, 32):
+        maps = rssm.keypoint_maps(kp, r, 0.08)
+        assert maps.shape == (1, 2, r, r) and float(maps.max()) <= 1.0
+        for k, (x, y) in enumerate([(-0.45, 0.7), (0.3, -0.1)]):
+            row, col = divmod(int(maps[0, k].argmax()), r)
+            assert (row, col) == (int((y + 1) / 2 * r), int((x + 1) / 2 * r))
+    # At least half a cell wide: a point between coarse pixel centres still reaches them.
+    assert float(rssm.keypoint_maps(torch.tensor([[0.0, 0.0]]), 4, 0.01).max()) > 0.3     # exp(-1): not ~0
+
+
+def test_keypoint_maps_decoder_draws_from_the_states_keypoints():
+    with pytest.raises(rssm.DbbError, match="keypoint_maps"):
+        replace_cfg(DEFAULTS, keypoints=4, keypoint_maps=True).validate()
+    m = rssm.Rssm(replace_cfg(DEFAULTS, keypoints=4, keypoint_scale=1.0, keypoint_maps=True)).eval()
+    assert m.kp_head is m.decoder.kp_net          # one head: trained on the keypoints, drawn where it says
+    torch.manual_seed(0)
+    first, views = torch.rand(1, 4, 32, 32), torch.rand(1, 4, 3) * 60
+    ctx_pm = rssm.premultiply(first)
+    ctx = m.encoder.context(ctx_pm)
+    assert [c.shape[1] for c in ctx[:-1]] == [c.shape[1] + 4 for c in m.encoder.features(ctx_pm)]
+    assert torch.equal(ctx[-1], m.encoder(ctx_pm)[:, m.cfg.embed:])     # and the keypoints themselves
+    h, z, pe = torch.randn(1, 16), torch.randn(1, 16), rssm.view_encoding(views[:, 1], m.cfg.view_freqs)
+    ctx_pe = rssm.view_encoding(views[:, 0], m.cfg.view_freqs)
+    with torch.no_grad():
+        m.decoder.ups[-1].weight[:, 5:7] = 0.01 * torch.randn_like(m.decoder.ups[-1].weight[:, 5:7])
+    out = m.decode(h, z, pe, ctx, ctx_pm, ctx_pe)
+    out.square().sum().backward()                 # the pixels pull on the keypoints' head
+    assert float(m.decoder.kp_net[-1].weight.grad.abs().sum()) > 0
+    with torch.no_grad():
+        m.decoder.kp_net[-1].bias.add_(0.5)       # the state's keypoints elsewhere: another frame
+        assert not torch.allclose(m.decode(h, z, pe, ctx, ctx_pm, ctx_pe), out, atol=1e-5)
+    torch.manual_seed(7)
+    eager = rssm.rollout(rssm.Stepper(m), first, views)
+    torch.manual_seed(7)
+    assert torch.allclose(eager, rssm.rollout(rssm.script_stepper(m), first, views), atol=1e-5)
+    assert math.isfinite(rssm.sequence_loss(m, torch.rand(1, 11, 4, 32, 32), torch.rand(1, 11, 3))[0].item())
+
+
+def test_keypoint_warp_moves_a_part_from_the_context_keypoint_to_the_states():
+    base = rssm.identity_grid(1, 32)
+    img = torch.zeros(1, 1, 32, 32)
+    img[0, 0, 7:10, 7:10] = 1.0                                   # a 3-px part centred on pixel (8, 8)
+    c = lambda px: (px + 0.5) / 16 - 1                            # pixel index -> grid units
+    ctx_kp = torch.tensor([[c(8), c(8)]])
+    for row, col in ((12, 20), (25, 3)):
+        g = rssm.keypoint_warp(torch.tensor([[c(col), c(row)]]), ctx_kp, base, 0.08)
+        out = F.grid_sample(img, g, align_corners=False)[0, 0]
+        assert torch.allclose(out[row - 1:row + 2, col - 1:col + 2], torch.ones(3, 3), atol=0.05)
+        far = torch.ones(32, 32, dtype=torch.bool)
+        far[max(row - 9, 0):row + 10, max(col - 9, 0):col + 10] = False
+        far[0:18, 0:18] = False
+        assert torch.equal(out[far], img[0, 0][far])               # away from both: the frame as it was
+    # No displacement, no warp.
+    assert torch.allclose(rssm.keypoint_warp(ctx_kp, ctx_kp, base, 0.08), base)
+    with pytest.raises(rssm.DbbError, match="keypoint_warp"):
+        replace_cfg(DEFAULTS, keypoints=4, keypoint_scale=1.0, keypoint_maps=True, keypoint_warp=True,
+                    compose="blend").validate()
+    m = rssm.Rssm(replace_cfg(DEFAULTS, keypoints=4, keypoint_scale=1.0, keypoint_maps=True, keypoint_warp=True)).eval()
+    first, views = torch.rand(1, 4, 32, 32), torch.rand(1, 4, 3) * 60
+    torch.manual_seed(7)
+    eager = rssm.rollout(rssm.Stepper(m), first, views)
+    torch.manual_seed(7)
+    assert torch.allclose(eager, rssm.rollout(rssm.script_stepper(m), first, views), atol=1e-5)
+    assert math.isfinite(rssm.sequence_loss(m, torch.rand(1, 11, 4, 32, 32), torch.rand(1, 11, 3))[0].item())
