@@ -40,7 +40,7 @@ import shutil
 import time
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
-from typing import List
+from typing import List, Optional
 
 import cv2
 import numpy as np
@@ -183,6 +183,12 @@ class RssmConfig:
                                    # state predicts, the context frame is read from around the context's
                                    # keypoint, so a part goes wherever the state says in one step, not
                                    # a pixel or two a step; a learned mask blends it with the accumulated warp
+    keypoint_teacher: bool = False  # (needs keypoint_maps, compose accum) training decodes every frame from the
+                                   # keypoints the encoder finds in that frame (detached), as Minderer et al.
+                                   # train their decoder, not from the state's guess: a pixel loss scores a
+                                   # small part drawn a few pixels off worse than no part, so a decoder fed the
+                                   # state's uncertain keypoints learns to leave the part where it was. The
+                                   # state's keypoints (kp_head, trained by the keypoint loss) drive it at run time
 
     def validate(self) -> None:
         if self.size not in SIZES:
@@ -228,6 +234,8 @@ class RssmConfig:
             raise DbbError("RSSM keypoint_maps needs keypoint_scale > 0 (and keypoints > 0)")
         if self.keypoint_warp and not (self.keypoint_maps and self.compose == "accum" and self.skip):
             raise DbbError("RSSM keypoint_warp needs keypoint_maps and compose accum")
+        if self.keypoint_teacher and not (self.keypoint_maps and self.compose == "accum"):
+            raise DbbError("RSSM keypoint_teacher needs keypoint_maps and compose accum")
         if self.keypoint_map_std <= 0:
             raise DbbError(f"RSSM keypoint_map_std must be > 0, not {self.keypoint_map_std}")
         if not 0.0 <= self.osc_keep_min < 1.0:
@@ -663,11 +671,13 @@ class Decoder(nn.Module):
         return x
 
     def accum_step(self, feat: torch.Tensor, ctx: list[torch.Tensor], ctx_pm: torch.Tensor,
-                   grid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+                   grid: torch.Tensor, kp: Optional[torch.Tensor] = None) -> tuple[torch.Tensor, torch.Tensor]:
         """``compose="accum"``: the next frame (N, 4, S, S) premultiplied and its warp (N, S, S, 2),
         from the current frame's warp ``grid`` (the identity grid before the first step) and the
-        context's maps ``ctx`` and pixels ``ctx_pm`` (as ``forward``)."""
-        kp = self.state_keypoints(feat)
+        context's maps ``ctx`` and pixels ``ctx_pm`` (as ``forward``); ``kp`` (N, 2K) the keypoints
+        to draw from (``keypoint_teacher`` in training), by default the state's."""
+        if kp is None:
+            kp = self.state_keypoints(feat)
         x = self.heads(feat, warp_maps(ctx, grid), kp)
         s = torch.sigmoid(x[:, :5])                               # RGBA and the warp's share
         gen = torch.cat([s[:, :3] * s[:, 3:4], s[:, 3:4]], 1)
@@ -843,16 +853,17 @@ class Rssm(nn.Module):
 
     def decode_chain(self, h: torch.Tensor, z: torch.Tensor, pe: torch.Tensor, prev_pe: torch.Tensor,
                      ctx: list[torch.Tensor], ctx_pm: torch.Tensor, ctx_pe: torch.Tensor,
-                     grid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+                     grid: torch.Tensor, kp: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """``compose="accum"``: consecutive frames of each row, one step after another. ``h``, ``z``
         (N, T, .), ``pe`` (N, T, 4F) their views, ``prev_pe`` (N, 4F) the view of the frame before
-        the first, ``grid`` (N, S, S, 2) its warp; context as :meth:`decode`. Returns premultiplied
-        RGBA (N, T, 4, S, S) and the last frame's warp."""
+        the first, ``grid`` (N, S, S, 2) its warp; context as :meth:`decode`; ``kp`` (N, T, 2K) the
+        keypoints to draw each frame from (None: the states'). Returns premultiplied RGBA
+        (N, T, 4, S, S) and the last frame's warp."""
         out = []
         for t in range(h.shape[1]):
             feat = decoder_features(h[:, t], z[:, t], pe[:, t], ctx_pe, True, self.cfg.decoder_view,
                                     self.cfg.view_freqs, prev_pe)
-            x, grid = self.decoder.accum_step(feat, ctx, ctx_pm, grid)
+            x, grid = self.decoder.accum_step(feat, ctx, ctx_pm, grid, None if kp is None else kp[:, t])
             out.append(x)
             prev_pe = pe[:, t]
         return torch.stack(out, 1), grid
@@ -1054,8 +1065,9 @@ def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[to
         # the open loop goes on from the filtering warp of frame k, as its states do.
         def chain(hh, zz, t0, t1, grid, reps=1):
             rep = lambda a: a.repeat((reps,) + (1,) * (a.dim() - 1))
+            kp = rep(emb[:, t0:t1, cfg.embed:].detach()) if cfg.keypoint_teacher else None
             return model.decode_chain(hh, zz, rep(pe[:, t0:t1]), rep(pe[:, t0 - 1]), [rep(c) for c in ctx0],
-                                      rep(x[:, 0]), rep(pe[:, 0]), grid)
+                                      rep(x[:, 0]), rep(pe[:, 0]), grid, kp)
 
         H, Zd = torch.stack(hs, 1), torch.stack(zd, 1)
         f1, g_k = x[:, :0], model.decoder.grid.expand(B, -1, -1, -1)

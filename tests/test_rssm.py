@@ -1333,3 +1333,28 @@ def test_keypoint_warp_moves_a_part_from_the_context_keypoint_to_the_states():
     torch.manual_seed(7)
     assert torch.allclose(eager, rssm.rollout(rssm.script_stepper(m), first, views), atol=1e-5)
     assert math.isfinite(rssm.sequence_loss(m, torch.rand(1, 11, 4, 32, 32), torch.rand(1, 11, 3))[0].item())
+
+
+def test_keypoint_teacher_decodes_training_frames_from_their_own_keypoints():
+    with pytest.raises(rssm.DbbError, match="keypoint_teacher"):
+        replace_cfg(DEFAULTS, keypoints=4, keypoint_scale=1.0, keypoint_teacher=True).validate()
+    torch.manual_seed(0)
+    x, views = torch.rand(2, 11, 4, 32, 32), torch.rand(2, 11, 3) * 60
+
+    def parts(teacher: bool, shift: float) -> dict:
+        m = rssm.Rssm(replace_cfg(DEFAULTS, keypoints=4, keypoint_scale=1.0, keypoint_maps=True,
+                                  keypoint_teacher=teacher, energy_scale=1.0))
+        with torch.no_grad():
+            m.decoder.kp_net[-1].bias.add_(shift)     # the state's keypoints elsewhere
+        torch.manual_seed(3)
+        return rssm.sequence_loss(m, x, views)[1]
+
+    for teacher in (False, True):
+        torch.manual_seed(1)
+        a = parts(teacher, 0.0)
+        torch.manual_seed(1)
+        b = parts(teacher, 0.5)
+        assert b["keypoints"] != pytest.approx(a["keypoints"])             # the head is still trained
+        moved = [k for k in ("rec", "energy") if b[k] != pytest.approx(a[k], rel=1e-6)]
+        # Teacher: no pixel term reads the state's keypoints; without it every one does.
+        assert moved == ([] if teacher else ["rec", "energy"])
