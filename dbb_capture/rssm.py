@@ -178,11 +178,6 @@ class RssmConfig:
                                    # context frame shows it (a warp moves it a few pixels at most)
     keypoint_map_std: float = 0.08  # those maps' std in [-1, 1] frame units (0.08: 2.6 px at 64 px);
                                    # at least half a cell at each coarser layer
-    keypoint_warp: bool = False    # (needs keypoint_maps, compose accum) a second warp, moved by keypoints
-                                   # (first-order motion, Siarohin et al. 2019): near each keypoint the
-                                   # state predicts, the context frame is read from around the context's
-                                   # keypoint, so a part goes wherever the state says in one step, not
-                                   # a pixel or two a step; a learned mask blends it with the accumulated warp
     keypoint_teacher: bool = False  # (needs keypoint_maps, compose accum) training decodes every frame from the
                                    # keypoints the encoder finds in that frame (detached), as Minderer et al.
                                    # train their decoder, not from the state's guess: a pixel loss scores a
@@ -232,8 +227,6 @@ class RssmConfig:
             raise DbbError(f"RSSM keypoints must be >= 0, not {self.keypoints}")
         if self.keypoint_maps and self.keypoint_scale <= 0:
             raise DbbError("RSSM keypoint_maps needs keypoint_scale > 0 (and keypoints > 0)")
-        if self.keypoint_warp and not (self.keypoint_maps and self.compose == "accum" and self.skip):
-            raise DbbError("RSSM keypoint_warp needs keypoint_maps and compose accum")
         if self.keypoint_teacher and not (self.keypoint_maps and self.compose == "accum"):
             raise DbbError("RSSM keypoint_teacher needs keypoint_maps and compose accum")
         if self.keypoint_map_std <= 0:
@@ -457,9 +450,6 @@ def warp_maps(maps: list[torch.Tensor], grid: torch.Tensor) -> list[torch.Tensor
     g = grid.permute(0, 3, 1, 2)
     out: list[torch.Tensor] = []
     for m in maps[::-1]:
-        if m.dim() != 4:                       # the context's keypoints (Encoder.context): as they are
-            out.append(m)
-            continue
         r = m.shape[-1]
         while g.shape[-1] > r:                 # sizes are powers of two (RssmConfig.validate)
             g = F.avg_pool2d(g, 2)
@@ -478,22 +468,6 @@ def keypoint_maps(kp: torch.Tensor, r: int, std: float) -> torch.Tensor:
     gx = torch.exp(-0.5 * ((c - kp[:, :k, None]) / s) ** 2)             # (N, K, r)
     gy = torch.exp(-0.5 * ((c - kp[:, k:, None]) / s) ** 2)
     return gy[:, :, :, None] * gx[:, :, None, :]
-
-
-def keypoint_warp(kp: torch.Tensor, ctx_kp: torch.Tensor, base: torch.Tensor, std: float,
-                  background: float = 1e-3) -> torch.Tensor:
-    """Where to read the context frame so its parts stand at keypoints ``kp`` (N, 2K) when they
-    stood at ``ctx_kp`` (N, 2K) in it: (N, S, S, 2) grid_sample coordinates, ``base`` the identity
-    grid (1, S, S, 2). Each pixel moves by its keypoints' displacements (ctx_kp - kp) weighted by
-    their Gaussian maps (:func:`keypoint_maps`) against a ``background`` weight that stays put,
-    so a disc about 3.5 std in radius around each keypoint moves rigidly with it (first-order motion
-    model, zeroth order)."""
-    k = kp.shape[1] // 2
-    m = keypoint_maps(kp, base.shape[1], std)                          # (N, K, S, S)
-    w = m / (m.sum(1, keepdim=True) + background)
-    d = ctx_kp - kp
-    shift = torch.stack([(w * d[:, :k, None, None]).sum(1), (w * d[:, k:, None, None]).sum(1)], -1)
-    return base + shift
 
 
 # --------------------------------------------------------------------------- networks
@@ -569,13 +543,12 @@ class Encoder(nn.Module):
 
     def context(self, x: torch.Tensor) -> list[torch.Tensor]:
         """What the decoder's skip path reads of a context frame (B, 4, S, S): :meth:`features`,
-        with ``keypoint_maps`` each joined by the Gaussian maps of the frame's keypoints, and the
-        keypoints themselves (B, 2K) last."""
+        with ``keypoint_maps`` each joined by the Gaussian maps of the frame's keypoints."""
         maps = self.features(x)
         if not self.maps or self.keypoints is None:
             return maps
         kp = self.keypoints(maps[-1])
-        return [torch.cat([m, keypoint_maps(kp, m.shape[-1], self.map_std)], 1) for m in maps] + [kp]
+        return [torch.cat([m, keypoint_maps(kp, m.shape[-1], self.map_std)], 1) for m in maps]
 
 
 class Decoder(nn.Module):
@@ -623,8 +596,7 @@ class Decoder(nn.Module):
         if cfg.keypoint_maps:             # the state's keypoints, and (skip) the context's in its maps
             enc = [c + cfg.keypoints * (1 + int(self.skip)) for c in enc]
         # RGBA, then mask logit(s) (copy3: copy, warp, generate; blend: warp), then flow x, y.
-        self.kp_warp = bool(cfg.keypoint_warp)
-        n_out = (9 if self.copy3 else 7 + int(self.kp_warp)) if self.skip else 4
+        n_out = (9 if self.copy3 else 7) if self.skip else 4
         self.ups = nn.ModuleList([nn.ConvTranspose2d(c_in + c_skip, c_out, 4, 2, 1)
                                   for c_in, c_skip, c_out in zip(ch, enc, ch[1:] + [n_out])])
         # Pixel-centre sampling grid of grid_sample (align_corners=False), (1, S, S, 2) as (x, y).
@@ -637,8 +609,6 @@ class Decoder(nn.Module):
                 last.bias[4] = 3.0 if self.copy3 or self.accum else 1.0     # ~90-95 % copy at the start
                 if self.accum:            # zero flow: the first steps are the context frame exactly
                     last.weight[:, 5:7] = 0.0
-                if self.kp_warp:          # the keypoints' warp starts at a 5 % share
-                    last.bias[7] = -3.0
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kw):
         # Runs written before the skip path: ``convs`` was a Sequential (conv, SiLU, conv, ...).
@@ -654,7 +624,7 @@ class Decoder(nn.Module):
         return self.kp_net(feat[:, :self.n_state])
 
     def heads(self, feat: torch.Tensor, ctx: list[torch.Tensor], kp: torch.Tensor) -> torch.Tensor:
-        """The last layer's output (N, 4 | 7 | 8 | 9, S, S) before any compositing (see ``forward``);
+        """The last layer's output (N, 4 | 7 | 9, S, S) before any compositing (see ``forward``);
         ``kp`` the state's keypoints (:meth:`state_keypoints`)."""
         x = F.silu(self.fc(feat).view(-1, self.c0, 4, 4))
         n = len(self.ups)
@@ -683,11 +653,7 @@ class Decoder(nn.Module):
         gen = torch.cat([s[:, :3] * s[:, 3:4], s[:, 3:4]], 1)
         flow = snap_flow(torch.tanh(x[:, 5:7]) * self.max_step_flow, self.flow_snap)
         grid = accumulated_warp(grid, flow, self.grid, self.warp_leak)
-        read = grid
-        if self.kp_warp:                  # not accumulated: the next step starts from the flows' grid
-            kg = keypoint_warp(kp, ctx[-1], self.grid.to(x.dtype), self.map_std)
-            read = torch.lerp(grid, kg, torch.sigmoid(x[:, 7:8]).permute(0, 2, 3, 1))
-        warped = F.grid_sample(ctx_pm, read, mode="bilinear", padding_mode="zeros", align_corners=False)
+        warped = F.grid_sample(ctx_pm, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
         return torch.lerp(gen, warped, snap_mask(s[:, 4:5], self.mask_snap)), grid
 
     def forward(self, feat: torch.Tensor, ctx: list[torch.Tensor], ctx_pm: torch.Tensor) -> torch.Tensor:
