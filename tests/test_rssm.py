@@ -866,9 +866,9 @@ def test_accum_training_decodes_frames_in_order_and_the_open_loop_from_the_filte
     calls = []
     real = m.decode_chain
 
-    def spy(h, z, pe, prev_pe, ctx, ctx_pm, ctx_pe, grid):
+    def spy(h, z, pe, prev_pe, ctx, ctx_pm, ctx_pe, grid, kp=None):
         calls.append((h.shape[0], h.shape[1], grid.clone()))
-        return real(h, z, pe, prev_pe, ctx, ctx_pm, ctx_pe, grid)
+        return real(h, z, pe, prev_pe, ctx, ctx_pm, ctx_pe, grid, kp)
 
     monkeypatch.setattr(m, "decode_chain", spy)
     x, v = torch.rand(3, 11, 4, 32, 32), torch.rand(3, 11, 3) * 40
