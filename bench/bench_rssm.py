@@ -361,10 +361,11 @@ def subset(dataset: Path, out: Path, seconds: float) -> dict:
     return {"seconds": seconds, "frames": len(keep), "train_windows": count("train"), "test_windows": count("test")}
 
 
-def overrides(pairs: list[str]) -> tuple[rssm.RssmConfig, rssm.TrainConfig]:
-    """Model and training settings from ``name=value`` pairs (fields of RssmConfig / TrainConfig)."""
+def overrides(pairs: list[str], resume_from: Path | None = None) -> tuple[rssm.RssmConfig, rssm.TrainConfig]:
+    """Model and training settings from ``name=value`` pairs (fields of RssmConfig / TrainConfig),
+    over the defaults or the settings of the run ``resume_from`` (as ``dbb-train rssm --resume``)."""
     try:
-        return rssm.configs_from_settings(pairs)
+        return rssm.configs_from_settings(pairs, *(rssm.resume_configs(resume_from) if resume_from else ()))
     except rssm.DbbError as e:
         raise SystemExit(str(e)) from None
 
@@ -386,7 +387,7 @@ def quality(dataset: Path, run: Path, capture: Path | None, minutes: float, step
                  "load_average_1min_before": round(os.getloadavg()[0], 2)}
     if train:
         t = time.perf_counter()
-        cfg, tcfg = overrides(list(settings))
+        cfg, tcfg = overrides(list(settings), run if resume else None)
         tcfg = replace(tcfg, minutes=minutes, steps=steps, batch=batch, lr=lr)
         meta = rssm.train_run(dataset, run, cfg, tcfg, overwrite=not resume, resume=resume, temperature=temperature)
         out["settings"] = list(settings)

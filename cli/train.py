@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import click
@@ -104,12 +105,18 @@ def plenoctree(dataset, out, minutes, steps, downscale, resume, overwrite, mode,
               help="Run-time sampling temperature of the stochastic state (0: its mean, which shrinks motion). "
                    "Default: fitted to the footage, so that at a still viewpoint the rollouts move as much as "
                    "the object does in the footage (run.json: stepper.temperature_calibration).")
-@click.option("--resume", is_flag=True, help="Continue from the run's last checkpoint.")
+@click.option("--resume", is_flag=True,
+              help="Continue from the run's last checkpoint, with its model and training settings (training "
+                   "settings, --batch and --seed given here override them; --minutes/--steps count in all).")
 @click.option("--overwrite", is_flag=True, help="Replace the run folder if it exists.")
 @click.option("--set", "settings", multiple=True, metavar="NAME=VALUE",
               help="A model or training setting other than its default, e.g. compose=accum (repeatable; "
                    "docs/commands/rssm.md lists them).")
-def rssm(dataset, out, minutes, steps, size, batch, threads, seed, temperature, resume, overwrite, settings) -> None:
+@click.option("--preset", type=click.Choice(["swing"]), default=None,
+              help="A named bundle of settings, applied before --set: 'swing' for a small part that swings "
+                   "in front of a still camera (a pendulum; docs/commands/rssm.md).")
+def rssm(dataset, out, minutes, steps, size, batch, threads, seed, temperature, resume, overwrite, settings,
+         preset) -> None:
     """Dynamic object: train a viewpoint-conditioned RSSM video predictor on DATASET (crops.json).
 
     Writes the weights, a TorchScript stepper and the evaluation (per-step PSNR/SSIM of 10-step
@@ -118,12 +125,20 @@ def rssm(dataset, out, minutes, steps, size, batch, threads, seed, temperature, 
     """
     import torch
 
-    from dbb_capture.rssm import RssmConfig, TrainConfig, configs_from_settings, train_run
+    from dbb_capture.rssm import RssmConfig, TrainConfig, configs_from_settings, resume_configs, train_run
 
     if threads:
         torch.set_num_threads(threads)
-    cfg, tcfg = configs_from_settings(list(settings), RssmConfig(size=int(size)),
-                                      TrainConfig(minutes, steps, batch=batch, seed=seed))
+    pairs = ([f"preset={preset}"] if preset else []) + list(settings)
+    if resume:      # the run's own settings, under what this command says (the model stays the checkpoint's)
+        ctx = click.get_current_context()
+        given = {k: v for k, v in (("batch", batch), ("seed", seed))
+                 if ctx.get_parameter_source(k) is not click.core.ParameterSource.DEFAULT}
+        cfg, tcfg = resume_configs(out)
+        tcfg = replace(tcfg, minutes=minutes, steps=steps, **given)
+    else:
+        cfg, tcfg = RssmConfig(size=int(size)), TrainConfig(minutes, steps, batch=batch, seed=seed)
+    cfg, tcfg = configs_from_settings(pairs, cfg, tcfg)
     meta = train_run(dataset, out, cfg, tcfg, resume=resume, overwrite=overwrite, temperature=temperature)
     _print_rssm(out, meta["eval"], f"{meta['training']['steps']} steps in {meta['training']['seconds'] / 60:.1f} min")
 

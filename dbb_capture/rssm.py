@@ -324,13 +324,37 @@ def leak_at_frame_rate(cfg: RssmConfig, fps: float | None) -> RssmConfig:
     return replace(cfg, warp_leak=leak, warp_leak_fps=float(fps))
 
 
+# Named bundles of settings, for footage the defaults do not suit. ``preset=NAME`` in a settings
+# list stands for its pairs (later pairs override them).
+PRESETS: dict[str, tuple[str, ...]] = {
+    # A small part that swings in front of a still camera (the pendulum; docs/benchmarks.md, RSSM,
+    # twenty-fourth round): the encoder's keypoints find the ball, oscillator modes in the state
+    # keep the rhythm past the trained horizon, latent-only steps over 60 frames train that
+    # rhythm, and the decoder draws from keypoint maps, trained from the keypoints of each frame.
+    "swing": ("compose=accum", "warp_leak=0.1", "warp_leak_fps=10", "energy_scale=100", "sharp_scale=100",
+              "keypoints=16", "keypoint_scale=100", "keypoints_frozen=true", "osc=16", "deter=96",
+              "osc_keep_min=0.999", "dynamics_steps=1", "dynamics_horizon=60", "keypoint_maps=true",
+              "keypoint_teacher=true"),
+}
+
+
 def configs_from_settings(pairs: list[str], cfg: RssmConfig | None = None,
                           tcfg: TrainConfig | None = None) -> tuple[RssmConfig, TrainConfig]:
     """Model and training settings from ``NAME=VALUE`` pairs (fields of :class:`RssmConfig` or
-    :class:`TrainConfig`, e.g. ``compose=accum``), over ``cfg`` / ``tcfg`` (default: the defaults);
-    values take the field's type ("none" for None, true/false for flags)."""
+    :class:`TrainConfig`, e.g. ``compose=accum``, or ``preset=NAME`` for the pairs of
+    :data:`PRESETS` ``[NAME]``), over ``cfg`` / ``tcfg`` (default: the defaults); values take the
+    field's type ("none" for None, true/false for flags)."""
     cfg, tcfg = cfg or RssmConfig(), tcfg or TrainConfig()
+    expanded: list[str] = []
     for pair in pairs:
+        name, _, value = pair.partition("=")
+        if name == "preset":
+            if value not in PRESETS:
+                raise DbbError(f"--set {pair}: no such preset (known: {', '.join(sorted(PRESETS))})")
+            expanded.extend(PRESETS[value])
+        else:
+            expanded.append(pair)
+    for pair in expanded:
         name, eq, value = pair.partition("=")
         target = cfg if name in {f.name for f in fields(RssmConfig)} else tcfg
         if not eq or name not in {f.name for f in fields(target)} or name in ("minutes", "steps"):
@@ -1576,6 +1600,7 @@ class TrainState:
     selection: Selection | None = None      # model selection on held-out training windows (val_fraction)
     ema: dict | None = None                 # the weights' moving average (TrainConfig.ema), as a state dict
     ema_updates: int = 0
+    train_config: dict | None = None        # the TrainConfig it was trained with (asdict), for --resume
 
     def save(self, path: Path) -> None:
         tmp = Path(path).with_suffix(".tmp")
@@ -1583,7 +1608,7 @@ class TrainState:
                     "opt": self.opt.state_dict(), "step": self.step, "seconds": self.seconds,
                     "bad_steps": self.bad_steps, "history": self.history,
                     "selection": None if self.selection is None else asdict(self.selection),
-                    "ema": self.ema, "ema_updates": self.ema_updates}, tmp)
+                    "ema": self.ema, "ema_updates": self.ema_updates, "train_config": self.train_config}, tmp)
         tmp.replace(path)
 
     def update_ema(self, decay: float) -> None:
@@ -1627,7 +1652,23 @@ class TrainState:
         if ck.get("selection"):
             st.selection = Selection(**ck["selection"])
         st.ema, st.ema_updates = ck.get("ema"), ck.get("ema_updates", 0)
+        st.train_config = ck.get("train_config")
         return st
+
+
+def resume_configs(out: Path) -> tuple[RssmConfig, TrainConfig]:
+    """The model and training settings of the run ``out``'s last checkpoint, as the base that a
+    resumed run's own settings go over (so ``--resume`` keeps ``--preset``/``--set`` given at the
+    start). Checkpoints written before training settings were stored give the training defaults."""
+    path = resume_checkpoint(Path(out))
+    try:
+        ck = torch.load(path, map_location="cpu", weights_only=False)
+        cfg = RssmConfig.from_json(ck["config"])
+    except (OSError, KeyError, RuntimeError) as e:
+        raise DbbError(f"cannot read RSSM checkpoint {path}: {e}") from None
+    names = {f.name for f in fields(TrainConfig)}
+    stored = {k: v for k, v in (ck.get("train_config") or {}).items() if k in names}
+    return cfg, TrainConfig(**stored)
 
 
 def _optimizer(model: Rssm, tcfg: TrainConfig) -> torch.optim.Optimizer:
@@ -1659,6 +1700,7 @@ def train(state: TrainState, data: SequenceData, tcfg: TrainConfig, ckpt: Path |
         if state.selection is None:
             state.selection = Selection()
     rng = np.random.default_rng(tcfg.seed + state.step)
+    state.train_config = asdict(tcfg)
     state.model.train()
     try:
         _train_loop(state, data, tcfg, ckpt, on_step, starts, length, rng, val)

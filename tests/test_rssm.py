@@ -219,6 +219,13 @@ def test_run_folder_cli_resume_and_eval(crops, tmp_path):
     assert r.exit_code == 0, r.output
     cfg = json.loads((tmp_path / "acc" / "run.json").read_text())["model"]["config"]
     assert cfg["compose"] == "accum" and cfg["warp_leak"] == 0.1 and cfg["size"] == 32
+    # --resume keeps the run's training settings (augment=none) unless told otherwise (--batch here).
+    r = CliRunner().invoke(cli.main, ["rssm", str(crops.root), "-o", str(tmp_path / "acc"), "--steps", "3",
+                                      "--batch", "3", "--threads", "1", "--resume"])
+    assert r.exit_code == 0, r.output
+    _cfg, tcfg = rssm.resume_configs(tmp_path / "acc")
+    assert tcfg.augment == "none" and tcfg.batch == 3 and tcfg.steps == 3
+    assert json.loads((tmp_path / "acc" / "run.json").read_text())["training"]["steps"] == 3
     for bad in ("warp_leek=0.1", "warp_leak=lots", "compose"):
         r = CliRunner().invoke(cli.main, ["rssm", str(crops.root), "-o", str(tmp_path / "y"), "--set", bad])
         lines = [ln for ln in r.output.splitlines() if ln.strip()]
@@ -228,6 +235,18 @@ def test_run_folder_cli_resume_and_eval(crops, tmp_path):
     lines = [ln for ln in r.output.splitlines() if ln.strip()]
     assert r.exit_code == 2 and len(lines) == 1 and lines[0].startswith("error:"), r.output
     assert not (tmp_path / "x").exists()
+
+
+def test_presets_expand_under_later_settings():
+    from dbb_capture.cli import train as cli
+
+    cfg, tcfg = rssm.configs_from_settings(["preset=swing", "osc=8"])
+    assert cfg.keypoint_maps and cfg.keypoint_teacher and cfg.compose == "accum" and tcfg.dynamics_horizon == 60
+    assert cfg.osc == 8                                    # a later pair wins over the preset's
+    with pytest.raises(DbbError, match="no such preset"):
+        rssm.configs_from_settings(["preset=wobble"])
+    opt = next(p for p in cli.rssm.params if p.name == "preset")
+    assert set(opt.type.choices) == set(rssm.PRESETS)      # the command offers each preset
 
 
 def test_eval_on_a_static_sequence_copy_first_is_perfect(data):
