@@ -284,11 +284,12 @@ class TrainConfig:
     dynamics_steps: int = 0        # > 0: after each step, this many more on fresh windows that train the
                                    # transition and prior alone (latent_loss: posteriors fixed, nothing
                                    # decoded), so the dynamics get many updates for each costly one
-                                   # (a non-finite one is skipped and counted; no gain on the pendulum)
+                                   # (a non-finite one is skipped and counted)
     dynamics_horizon: int | None = None  # the latent-only steps' windows (1 context + this many frames, as
                                    # `horizon`); None: the same windows as the full steps. Nothing is
                                    # decoded there, so windows many times longer cost little (pendulum:
-                                   # 60 and 120 gave less motion than without, 16th round)
+                                   # 60 with osc modes gives the prior the swing's period, 22nd-24th rounds;
+                                   # without them 60 and 120 gave less motion, 16th round)
 
     def validate(self) -> None:
         bad = set(self.augment.split(",")) - {"none", "flip", "reverse", "shift"}
