@@ -1642,11 +1642,11 @@ class TrainState:
 
     @classmethod
     def load(cls, path: Path, tcfg: TrainConfig, device: torch.device) -> TrainState:
+        ck = _read_checkpoint(path, device)
         try:
-            ck = torch.load(path, map_location=device, weights_only=False)
             model = Rssm(RssmConfig.from_json(ck["config"])).to(device)
             model.load_state_dict(ck["model"])
-        except (OSError, KeyError, RuntimeError) as e:
+        except (KeyError, RuntimeError) as e:
             raise DbbError(f"cannot read RSSM checkpoint {path}: {e}") from None
         st = cls(model, _optimizer(model, tcfg), ck["step"], ck["seconds"], ck.get("bad_steps", 0), ck["history"])
         st.opt.load_state_dict(ck["opt"])
@@ -1662,14 +1662,20 @@ def resume_configs(out: Path) -> tuple[RssmConfig, TrainConfig]:
     resumed run's own settings go over (so ``--resume`` keeps ``--preset``/``--set`` given at the
     start). Checkpoints written before training settings were stored give the training defaults."""
     path = resume_checkpoint(Path(out))
-    try:
-        ck = torch.load(path, map_location="cpu", weights_only=False)
-        cfg = RssmConfig.from_json(ck["config"])
-    except (OSError, KeyError, RuntimeError) as e:
-        raise DbbError(f"cannot read RSSM checkpoint {path}: {e}") from None
+    ck = _read_checkpoint(path, torch.device("cpu"))
+    if "config" not in ck:
+        raise DbbError(f"cannot read RSSM checkpoint {path}: it has no model config")
+    cfg = RssmConfig.from_json(ck["config"])
     names = {f.name for f in fields(TrainConfig)}
     stored = {k: v for k, v in (ck.get("train_config") or {}).items() if k in names}
     return cfg, TrainConfig(**stored)
+
+
+def _read_checkpoint(path: Path, device: torch.device) -> dict:
+    try:
+        return torch.load(path, map_location=device, weights_only=False)
+    except (OSError, RuntimeError) as e:
+        raise DbbError(f"cannot read RSSM checkpoint {path}: {e}") from None
 
 
 def _optimizer(model: Rssm, tcfg: TrainConfig) -> torch.optim.Optimizer:
