@@ -52,7 +52,8 @@ class BackgroundConfig:
     env_depths: int = 24            # radii the far sphere's depth sweep tries per texel (0: one sphere)
     top: float = 1.5                # highest layer: this many R above the object centre
     r_out_factor: float = 2.0       # far sphere: this many times the farthest camera distance
-    train_size: int = 64            # side of the training crops (pixels)
+    train_size: int = 64            # side of the training crops (pixels); preprocess sizes them to
+                                    # the matte's pixels, never below this (:func:`training_size`)
     train_fill: float = 0.6         # the sphere fills less of a training crop: a margin around it
     minutes: float = 2.0
     steps: int | None = None        # stop after this many steps (tests), else the time budget
@@ -419,6 +420,22 @@ def new_field(cfg: BackgroundConfig, center: np.ndarray, radius: float, up: np.n
 
 
 # --------------------------------------------------------------------------- training data
+def training_size(cfg: BackgroundConfig, matte_px: int, crop_fill: float, window_px: float) -> int:
+    """Side (pixels) of the training crops for crops matted at ``matte_px`` pixels with the object
+    sphere filling ``crop_fill`` of them, whose windows span ``window_px`` source pixels (median).
+
+    The field learns the room at the size of a matte pixel, so the board's pattern right behind
+    the object comes out as sharp as the matte compares it; never finer than the footage (one
+    training pixel per source pixel) nor coarser than ``cfg.train_size``. At 64 px the 640x480
+    capture's 256 px mattes met a room blurred over 3-4 of their pixels: 128 px crops'
+    background near the outline 24-25 dB in frames where the board shows behind the object,
+    28-32 dB at 160 px; crops against the truth +0.9 dB on white (docs/benchmarks.md, issue 4).
+    """
+    want = matte_px * cfg.train_fill / crop_fill
+    footage = window_px * crop_fill / cfg.train_fill      # the training window in source pixels
+    return int(round(max(cfg.train_size, min(want, footage))))
+
+
 @dataclass(frozen=True)
 class PosedView:
     """A source frame to learn from: RGB (H, W, 3) uint8, its (possibly distorted) camera, OpenCV c2w."""

@@ -170,7 +170,7 @@ PRUNE_WEIGHT = 0.005  # bake's default weight-pruning threshold (see prune_by_we
 
 
 @torch.no_grad()
-def bake(field: VoxelField, depth: int | None = None, alpha_min: float = 0.02, max_cut: float = 0.3,
+def bake(field: VoxelField, depth: int | None = None, alpha_min: float = 0.03, max_cut: float = 0.3,
          supersample: int = 1, chunk: int = 1 << 18,
          cameras: Sequence[tuple[np.ndarray, Intrinsics]] | None = None,
          prune_weight: float = PRUNE_WEIGHT) -> PlenOctree:
@@ -181,9 +181,11 @@ def bake(field: VoxelField, depth: int | None = None, alpha_min: float = 0.02, m
     across 1/256 of the object's diameter (a cell's side at depth 7) under ``alpha_min``,
     but never more than the ``max_cut`` faintest of the cells with any opacity (1e-3 over
     the cell). Fixing the length keeps the cut the same at every depth. On lego and the
-    synthetic object the 0.02 cut dropped 21-27% of the leaves (rays cross them, so they cost
-    render time) and held-out PSNR rose 0.06-0.56 dB (docs/benchmarks.md); at 0.05 it fell
-    by 1-4 dB.
+    synthetic object a 0.02 cut dropped 21-27% of the leaves (rays cross them, so they cost
+    render time) and held-out PSNR rose 0.06-0.56 dB (docs/benchmarks.md). The fields fit the
+    mattes' fringe with faint cells just outside the outline: re-baking the same runs at 0.03
+    gained +0.2-0.3 dB on white on two 640x480 captures and +0.01 on lego; past ~0.04 the cut
+    reaches the outline's own cells (0.1: -3.5 dB).
     Density is averaged over ``supersample``^3 points per cell (default 1: the centre; on a
     20-minute lego run the centre gave 28.18 dB held out against 27.92 for the 2^3 average,
     which smears the field's thin surfaces); SH coefficients are taken at the centre.

@@ -30,6 +30,7 @@ from .background import (
     refine_on_room,
     room_rays,
     train_background,
+    training_size,
 )
 from .board import BoardSpec
 from .cameras import Intrinsics, project_points
@@ -280,6 +281,14 @@ def object_sphere(ctx: StageContext, poses: PosesOutput) -> ObjectSphere:
     return ObjectSphere(center, radius, up, source)
 
 
+def matte_geometry(cfg: PreprocessConfig, poses: PosesOutput, sphere: ObjectSphere) -> tuple[np.ndarray, int]:
+    """The crop windows (N,) of the posed frames in source pixels and the scale the crops are
+    matted at (:func:`~.crops.matte_scale`)."""
+    windows = crop_windows([p.c2w for p in poses.run.posed], poses.run.intrinsics, sphere.center, sphere.radius,
+                           sphere.up, cfg.crop_size, cfg.crop_fill)
+    return windows, matte_scale(windows, cfg.crop_size, cfg.matte.supersample_between)
+
+
 def _subsample(items: list, n: int) -> list:
     if len(items) <= n:
         return items
@@ -294,6 +303,9 @@ def background_stage(ctx: StageContext, poses: PosesOutput) -> BackgroundOutput:
     plate = inp.background if cfg.use_clean_plate else None
     folder = ctx.out / "background"
     folder.mkdir()
+    windows, scale = matte_geometry(cfg, poses, sphere)
+    bg_cfg = replace(cfg.background, train_size=training_size(cfg.background, cfg.crop_size * scale, cfg.crop_fill,
+                                                              float(np.median(windows)) if len(windows) else 0.0))
     report: dict = {}
     with progress(transient=True) as prog:
         if plate is not None:
@@ -306,11 +318,11 @@ def background_stage(ctx: StageContext, poses: PosesOutput) -> BackgroundOutput:
                                   workers=cfg.workers, det_cfg=cfg.detector, pose_cfg=cfg.gates,
                                   tick=lambda n: prog.advance(task, n), total=lambda n: prog.update(task, total=n),
                                   intr_source=poses.run.intrinsics_source)
-            posed = _subsample(prun.posed, cfg.background.max_frames)
+            posed = _subsample(prun.posed, bg_cfg.max_frames)
             report["clean_plate"] = {"file": plate.name, "frames": len(prun.frames), "posed": len(prun.posed)}
         else:
             src = inp.footage
-            posed = _subsample(poses.run.posed, cfg.background.max_frames)
+            posed = _subsample(poses.run.posed, bg_cfg.max_frames)
             par = parallax_coverage(np.stack([p.c2w for p in posed]), sphere.center, sphere.radius, sphere.up)
             report["parallax_coverage"] = round(par, 3)
             if par < 0.5:
@@ -326,13 +338,13 @@ def background_stage(ctx: StageContext, poses: PosesOutput) -> BackgroundOutput:
             prog.update(train_task, completed=100 * frac, info=f"psnr {log.psnr:.1f} dB, step {log.steps}")
 
         model = train_background(views, len(posed), sphere.center, sphere.radius, sphere.up,
-                                 clean_plate=plate is not None, cfg=cfg.background, on_step=on_step,
+                                 clean_plate=plate is not None, cfg=bg_cfg, on_step=on_step,
                                  tick=lambda: prog.advance(task))
     model.save(folder / "field.pt")
     mode = "clean plate" if plate is not None else "object video (rays through the object's sphere left out)"
     report.update({"mode": mode, "frames": model.frames, "rays": model.rays, "steps": model.log.steps,
                    "seconds": round(model.log.seconds, 1), "train_psnr_db": round(model.log.psnr, 2),
-                   "layers": cfg.background.layers, "layer_px": cfg.background.layer_px,
+                   "layers": bg_cfg.layers, "layer_px": bg_cfg.layer_px, "train_px": bg_cfg.train_size,
                    "object_sphere": {"center": sphere.center.round(6).tolist(), "radius": sphere.radius,
                                      "source": sphere.source},
                    "history": model.log.history})
@@ -550,9 +562,7 @@ def crops_stage(ctx: StageContext, bg: BackgroundOutput) -> CropsOutput:
     c2w = {p.index: p.c2w for p in posed}
     workers = max(1, min(cfg.workers, len(indices) // 20))
     parts = split(indices, workers)
-    windows = crop_windows([p.c2w for p in posed], poses.run.intrinsics, sphere.center, sphere.radius, sphere.up,
-                           cfg.crop_size, cfg.crop_fill)
-    scale = matte_scale(windows, cfg.crop_size, cfg.matte.supersample_between)
+    windows, scale = matte_geometry(cfg, poses, sphere)
     if scale > 1:
         ctx.notes.append(f"crops matted at {scale}x ({scale * cfg.crop_size} px) and averaged down: the crop window "
                          f"spans {np.median(windows) / cfg.crop_size:.1f} source pixels per crop pixel (median)")

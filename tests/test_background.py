@@ -11,7 +11,7 @@ import torch
 from click.testing import CliRunner
 
 from dbb_capture.background import (BackgroundConfig, LayerField, PosedView, RayBank, new_field, parallax_coverage,
-                                    pinhole_rays, train_background)
+                                    pinhole_rays, train_background, training_size)
 from dbb_capture.cameras import Intrinsics, look_at, opencv_from_opengl, project_points
 from dbb_capture.cli.capture import main
 from dbb_capture.crops import crop_camera, crop_maps, object_crop, up_from_cameras
@@ -151,10 +151,21 @@ def test_preprocess_writes_crops_dataset(plate_capture, tmp_path):
     stats = json.loads((ds / "dataset.json").read_text())
     assert stats["crops"] == len(crops["frames"]) == stats["frames_posed"] >= 6
     assert stats["background"]["mode"] == "clean plate"
+    assert json.loads((ds / "background" / "report.json").read_text())["train_px"] >= 64
     assert stats["sequences"]["train"] > 0
     assert (ds / "contact_sheet.png").stat().st_size > 10_000 and (ds / "background" / "field.pt").is_file()
     assert not (ds / "matte_scratch").exists()          # the matte's second pass cleans up after itself
     assert json.loads((ds / "preprocess.json").read_text())["stages_run"] == ["poses", "background", "crops"]
+
+
+def test_training_crops_are_sized_to_the_matte_within_the_footage():
+    cfg = BackgroundConfig(train_size=64, train_fill=0.6)
+    # 128 px crops matted at 2x, sphere filling 0.9: a matte pixel is 1/171 of a 0.6-fill window.
+    assert training_size(cfg, 256, 0.9, window_px=179.0) == 171
+    # Footage coarser than the matte: one training pixel per source pixel (the window at 0.6 fill).
+    assert training_size(cfg, 256, 0.9, window_px=100.0) == 150
+    # Small crops never go below the configured size.
+    assert training_size(cfg, 64, 0.9, window_px=500.0) == 64
 
 
 def test_object_sphere_outside_the_views_is_an_error(plate_capture, tmp_path):
