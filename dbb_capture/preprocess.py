@@ -242,6 +242,8 @@ class BackgroundOutput:
     sphere: ObjectSphere
     model: BackgroundModel
     report: dict
+    windows: np.ndarray          # (N,) crop window of each posed frame, source pixels (:func:`matte_geometry`)
+    scale: int                   # the crops are matted at this many times their size
 
 
 def object_sphere(ctx: StageContext, poses: PosesOutput) -> ObjectSphere:
@@ -351,7 +353,7 @@ def background_stage(ctx: StageContext, poses: PosesOutput) -> BackgroundOutput:
     write_json(folder / "report.json", report)
     ctx.notes.append(f"background: {mode}, {model.frames} frames, {model.log.steps} steps, "
                      f"training PSNR {model.log.psnr:.1f} dB")
-    return BackgroundOutput(poses, sphere, model, report)
+    return BackgroundOutput(poses, sphere, model, report, windows, scale)
 
 
 @dataclass(frozen=True)
@@ -562,7 +564,7 @@ def crops_stage(ctx: StageContext, bg: BackgroundOutput) -> CropsOutput:
     c2w = {p.index: p.c2w for p in posed}
     workers = max(1, min(cfg.workers, len(indices) // 20))
     parts = split(indices, workers)
-    windows, scale = matte_geometry(cfg, poses, sphere)
+    windows, scale = bg.windows, bg.scale
     if scale > 1:
         ctx.notes.append(f"crops matted at {scale}x ({scale * cfg.crop_size} px) and averaged down: the crop window "
                          f"spans {np.median(windows) / cfg.crop_size:.1f} source pixels per crop pixel (median)")
