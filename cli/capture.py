@@ -188,6 +188,9 @@ def calibrate(input_path: Path, board_path: Path | None, output: Path, fps: floa
               help="Train the background field for this many steps instead of a time budget (reproducible runs).")
 @click.option("--clean-plate/--no-clean-plate", default=True, show_default=True,
               help="Learn the room from the clean plate when there is one (else from the object video).")
+@click.option("--video-room/--no-video-room", default=True, show_default=True,
+              help="With a clean plate: also learn the room from the object video's rays that pass the "
+                   "object's sphere (the room seen from viewpoints the plate may have missed).")
 @click.option("--crop-window", type=str, default=None, metavar="X,Y,SIZE",
               help="Fixed camera without a board: crop this square window (pixels; top-left corner and "
                    "side) from every frame, background from the temporal median, one constant viewpoint.")
@@ -202,7 +205,7 @@ def preprocess(capture: Path, output: Path, board_path: Path | None, camera_path
                footage: Path | None, object_path: Path | None, background: Path | None,
                fps: float | None, blur_ratio: float, refine: bool, crop_size: int, crop_fill: float,
                test_fraction: float, sequence_length: int, background_minutes: float, background_steps: int | None,
-               clean_plate: bool,
+               clean_plate: bool, video_room: bool,
                crop_window: str | None, fixed_matte: bool, stop_after: str | None, workers: int | None, overwrite: bool) -> None:
     """Turn CAPTURE into a dataset in OUTPUT: poses, background field, mattes and RGBA crops.
 
@@ -229,7 +232,8 @@ def preprocess(capture: Path, output: Path, board_path: Path | None, camera_path
                            workers=_workers(workers), stop_after=stop_after, crop_size=crop_size,
                            crop_fill=crop_fill, test_fraction=test_fraction, sequence_length=sequence_length,
                            use_clean_plate=clean_plate,
-                           background=replace(BackgroundConfig(), minutes=background_minutes, steps=background_steps))
+                           background=replace(BackgroundConfig(), minutes=background_minutes, steps=background_steps,
+                                              video_room=video_room))
     res = run_preprocess(inputs, output, cfg, overwrite=overwrite)
     for note in res.notes:
         console.print(f"[yellow]note:[/yellow] {note}", soft_wrap=True)

@@ -65,6 +65,9 @@ class BackgroundConfig:
                                     # room, for this share of the budget (minutes or steps; 0: not)
     refine_grow_px: int = 2         # ... keeping this far from anything they call object
     max_frames: int = 400
+    video_room: bool = True         # with a clean plate: also learn from the object video's rays that
+                                    # pass the object's sphere (beyond sphere_margin R; the plate's
+                                    # path need not cover the video's viewpoints)
     seed: int = 0
 
     def validate(self) -> None:
@@ -482,7 +485,7 @@ class RayBank:
 
 def build_bank(views: Iterable[PosedView], center: np.ndarray, radius: float, up: np.ndarray,
                cfg: BackgroundConfig, drop_sphere: bool,
-               tick: Callable[[], None] | None = None) -> RayBank:
+               tick: Callable[[], None] | None = None, allow_empty: bool = False) -> RayBank:
     parts = []
     for v in views:
         parts.append(view_rays(v, center, radius, up, cfg.train_size, cfg.train_fill,
@@ -490,6 +493,8 @@ def build_bank(views: Iterable[PosedView], center: np.ndarray, radius: float, up
         if tick:
             tick()
     if not parts:
+        if allow_empty:
+            return RayBank(torch.zeros(0, 3), torch.zeros(0, 3), torch.zeros(0, 3))
         raise DbbError("no posed frames to learn the background from")
     o, d, c = (torch.from_numpy(np.concatenate(x)) for x in zip(*parts))
     return RayBank(o, d, c)
@@ -733,9 +738,17 @@ def train_background(views: Iterable[PosedView], n_views: int, center: np.ndarra
                      up: np.ndarray, clean_plate: bool, cfg: BackgroundConfig = BackgroundConfig(),
                      device: torch.device | str = "cpu",
                      on_step: Callable[[TrainLog, float], None] | None = None,
-                     tick: Callable[[], None] | None = None) -> BackgroundModel:
+                     tick: Callable[[], None] | None = None,
+                     room_views: Iterable[PosedView] = ()) -> BackgroundModel:
     """Train the background field from ``n_views`` posed views of the clean plate (``clean_plate``)
     or of the object video (rays through the object's sphere are then left out).
+
+    ``room_views``: with a clean plate, views of the object video too, whose rays that pass the
+    object's sphere (beyond ``sphere_margin * radius``) join the plate's. A plate filmed along
+    another path leaves the room behind the object unseen from some of the video's viewpoints
+    (seed-41 capture: video frames 31-41 degrees from every plate view, the room near the object's
+    outline predicted at 25 dB against 30-44 elsewhere, the matte cut the object's top); the
+    video itself sees the room around the object from exactly there.
 
     ``views`` is consumed once, as a stream: only each view's training crop and a few whole
     frames for the plane sweep are kept, so long 4K footage does not fill the memory.
@@ -752,6 +765,11 @@ def train_background(views: Iterable[PosedView], n_views: int, center: np.ndarra
             yield v
 
     bank = build_bank(stream(), center, radius, up, cfg, drop_sphere=not clean_plate, tick=tick)
+    if clean_plate:
+        extra = build_bank(room_views, center, radius, up, cfg, drop_sphere=True, tick=tick, allow_empty=True)
+        if extra.n:
+            bank = RayBank(*(torch.cat([a, b]) for a, b in ((bank.origins, extra.origins), (bank.dirs, extra.dirs),
+                                                            (bank.rgb, extra.rgb))))
     exclude = None if clean_plate else cfg.sphere_margin * radius
     fld = new_field(cfg, center, radius, up, np.stack(c2ws), bank, cfg.layer_px // 2, device)
     if cfg.env_depths > 0:

@@ -14,7 +14,7 @@ camera, predicted background, matte, straight RGBA crop; ``crops.json``, full-fr
 from __future__ import annotations
 
 import shutil
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -297,6 +297,14 @@ def _subsample(items: list, n: int) -> list:
     return [items[i] for i in np.unique(np.linspace(0, len(items) - 1, n).round().astype(int))]
 
 
+def _posed_views(src: FootageSource, intr: Intrinsics, posed: list) -> Iterator[PosedView]:
+    """The frames of ``posed`` (posed frame records) read from ``src`` as a stream of views."""
+    by_index = {p.index: p for p in posed}
+    if by_index:
+        for f in src.read(sorted(by_index)):
+            yield PosedView(f.image, intr, by_index[f.index].c2w)
+
+
 def background_stage(ctx: StageContext, poses: PosesOutput) -> BackgroundOutput:
     """Train the room's field; writes background/field.pt and background/report.json."""
     inp, cfg = ctx.inputs, ctx.cfg
@@ -331,9 +339,10 @@ def background_stage(ctx: StageContext, poses: PosesOutput) -> BackgroundOutput:
                 raise InputError(f"no clean plate, and too little parallax to see behind the object (other views "
                                  f"see {100 * par:.0f}% of the table it hides, need 50%): film a clean plate "
                                  f"(background.mp4) or move around the object more")
-        by_index = {p.index: p for p in posed}
-        task = prog.add_task("cut training crops", total=len(posed), info="")
-        views = (PosedView(f.image, intr, by_index[f.index].c2w) for f in src.read(sorted(by_index)))
+        # With a plate, the video's rays past the object's sphere join it (BackgroundConfig.video_room).
+        video = _subsample(poses.run.posed, bg_cfg.max_frames) if plate is not None and bg_cfg.video_room else []
+        task = prog.add_task("cut training crops", total=len(posed) + len(video), info="")
+        views, room_views = _posed_views(src, intr, posed), _posed_views(inp.footage, intr, video)
         train_task = prog.add_task("train background field", total=100, info="")
 
         def on_step(log, frac):
@@ -341,9 +350,11 @@ def background_stage(ctx: StageContext, poses: PosesOutput) -> BackgroundOutput:
 
         model = train_background(views, len(posed), sphere.center, sphere.radius, sphere.up,
                                  clean_plate=plate is not None, cfg=bg_cfg, on_step=on_step,
-                                 tick=lambda: prog.advance(task))
+                                 tick=lambda: prog.advance(task), room_views=room_views)
     model.save(folder / "field.pt")
     mode = "clean plate" if plate is not None else "object video (rays through the object's sphere left out)"
+    if video:
+        report["video_room_frames"] = len(video)
     report.update({"mode": mode, "frames": model.frames, "rays": model.rays, "steps": model.log.steps,
                    "seconds": round(model.log.seconds, 1), "train_psnr_db": round(model.log.psnr, 2),
                    "layers": bg_cfg.layers, "layer_px": bg_cfg.layer_px, "train_px": bg_cfg.train_size,
@@ -351,7 +362,8 @@ def background_stage(ctx: StageContext, poses: PosesOutput) -> BackgroundOutput:
                                      "source": sphere.source},
                    "history": model.log.history})
     write_json(folder / "report.json", report)
-    ctx.notes.append(f"background: {mode}, {model.frames} frames, {model.log.steps} steps, "
+    also = f" (and the room around the object in {len(video)} video frames)" if video else ""
+    ctx.notes.append(f"background: {mode}, {model.frames} frames{also}, {model.log.steps} steps, "
                      f"training PSNR {model.log.psnr:.1f} dB")
     return BackgroundOutput(poses, sphere, model, report, windows, scale)
 
@@ -699,7 +711,7 @@ def dataset_stats(doc: dict, poses: PosesOutput, bg: BackgroundOutput, coverage:
         "alpha_coverage_mean": round(float(np.mean(coverage)), 4) if coverage else 0.0,
         "viewpoint_range": {"azimuth_deg": rng(0), "elevation_deg": rng(1), "distance_m": rng(2)},
         "object": doc["object"], "up": doc["up"],
-        "background": {k: bg.report[k] for k in ("mode", "frames", "steps", "train_psnr_db") if k in bg.report},
+        "background": {k: bg.report[k] for k in ("mode", "frames", "video_room_frames", "steps", "train_psnr_db") if k in bg.report},
         "intrinsics_source": poses.run.intrinsics_source,
     }
 
