@@ -308,37 +308,42 @@ def test_observed_pixels_over_the_predicted_room_correct_a_bad_matte(tmp_path):
 def test_robust_training_lets_the_views_outvote_a_false_object(tmp_path):
     """Each training view's matte adds a false object (a dark 5x5 patch where the view sees
     only room, at a different place in every view): plain L2 learns it as haze that other
-    views see (alpha over the room of held-out views about twice that of clean mattes); with
-    robust training the views that see through those places outvote each false patch, and most
-    of that haze goes (70-100 % of it in two runs). The IRLS weights themselves: 1 for unseen rays,
-    falling with the ray's running error."""
+    views see (alpha over the room of held-out views 2-6 times that of clean mattes); with
+    robust training the views that see through those places outvote each false patch and
+    much of that haze goes. Where the patches land moves the figures a lot (one placement
+    keeps 17-75 % of the haze, and one placement's figure moved from pass to fail between
+    two machines' float paths), so the bar is on four placements pooled: 36-42 % kept in
+    three draws, the bar 65 %.
+    The IRLS weights themselves: 1 for unseen rays, falling with the ray's running error."""
     import cv2
 
     from dbb_capture.fields import robust_weights
 
     frames, vol = synthetic_object_frames(tmp_path, n=24, size=24)
-    rng = np.random.default_rng(3)
-    truth, bad_frames = {}, []
-    for f in frames:
-        rgba = cv2.cvtColor(cv2.imread(str(f.image_path), cv2.IMREAD_UNCHANGED), cv2.COLOR_BGRA2RGBA)
-        truth[f.name] = rgba[..., 3].astype(np.float32) / 255
-        bad = rgba.copy()
-        if f.split == "train":
-            empty = np.argwhere(rgba[..., 3] == 0)
-            for _ in range(100):
-                y, x = empty[rng.integers(len(empty))]
-                if 4 <= y < 19 and 4 <= x < 19 and (rgba[y - 2:y + 3, x - 2:x + 3, 3] == 0).all():
-                    break
-            bad[y - 2:y + 3, x - 2:x + 3] = (30, 30, 30, 255)
-        p = tmp_path / f"bad_{f.name}.png"
-        cv2.imwrite(str(p), cv2.cvtColor(bad, cv2.COLOR_RGBA2BGRA))
-        bad_frames.append(replace(f, image_path=p))
+    truth = {f.name: cv2.imread(str(f.image_path), cv2.IMREAD_UNCHANGED) for f in frames}
 
-    def room_alpha(cfg: FieldConfig, clean: bool = False) -> float:
+    def with_false_patches(rng: np.random.Generator, tag: str) -> list[Frame]:
+        """The frames with a dark 5x5 patch over room pixels of every training view."""
+        out = []
+        for f in frames:
+            bad = truth[f.name].copy()      # BGRA
+            if f.split == "train":
+                empty = np.argwhere(bad[..., 3] == 0)
+                for _ in range(100):
+                    y, x = empty[rng.integers(len(empty))]
+                    if 4 <= y < 19 and 4 <= x < 19 and (bad[y - 2:y + 3, x - 2:x + 3, 3] == 0).all():
+                        break
+                bad[y - 2:y + 3, x - 2:x + 3] = (30, 30, 30, 255)
+            p = tmp_path / f"bad{tag}_{f.name}.png"
+            cv2.imwrite(str(p), bad)
+            out.append(replace(f, image_path=p))
+        return out
+
+    def room_alpha(cfg: FieldConfig, views: list[Frame]) -> float:
         """Mean alpha over the room (truth alpha < 0.01) of the held-out views."""
-        bank = build_ray_bank([f for f in (frames if clean else bad_frames) if f.split == "train"], 1, vol)
+        bank = build_ray_bank([f for f in views if f.split == "train"], 1, vol)
         torch.manual_seed(0)
-        st = train(TrainState(new_field(cfg, vol, torch.device("cpu"))), bank, Budget(steps=400))
+        st = train(TrainState(new_field(cfg, vol, torch.device("cpu"))), bank, Budget(steps=800))
         if cfg.robust_from is not None and cfg.robust_from < 1:
             assert bank.error is not None and not bank.error.isnan().all()
         out = []
@@ -346,7 +351,7 @@ def test_robust_training_lets_the_views_outvote_a_false_object(tmp_path):
             if f.split == "test":
                 o, d, _ = frame_tensors(f, 1)
                 a = render_image(st.field, torch.from_numpy(o), torch.from_numpy(d), None)[..., 3]
-                out.append(a[truth[f.name] < 0.01].mean())
+                out.append(a[truth[f.name][..., 3] < 3].mean())
         return float(np.mean(out))
 
     import numba
@@ -354,11 +359,15 @@ def test_robust_training_lets_the_views_outvote_a_false_object(tmp_path):
     threads = numba.get_num_threads()
     numba.set_num_threads(1)    # repeatable: no concurrent additions into one row (Hogwild)
     try:
-        clean, l2, robust = room_alpha(TINY, clean=True), room_alpha(TINY), room_alpha(replace(TINY, robust_from=0.5))
+        clean = room_alpha(TINY, frames)
+        rng = np.random.default_rng(3)
+        placements = [with_false_patches(rng, str(k)) for k in range(4)]
+        l2 = np.array([room_alpha(TINY, v) for v in placements])
+        robust = np.array([room_alpha(replace(TINY, robust_from=0.5), v) for v in placements])
     finally:
         numba.set_num_threads(threads)
-    assert l2 > 1.6 * clean, (clean, l2)
-    assert robust < 0.7 * l2, (clean, l2, robust)
+    assert l2.mean() > 1.6 * clean, (clean, l2)
+    assert robust.sum() < 0.65 * l2.sum(), (clean, l2, robust)
     w = robust_weights(torch.tensor([float("nan"), 0.0, 0.01, 1.0]), 0.1)
     assert torch.allclose(w, torch.tensor([1.0, 1.0, 0.5, 1 / 101]))
 
