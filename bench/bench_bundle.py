@@ -25,11 +25,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dbb_capture import bundle as B
-from dbb_capture.cameras import opengl_from_opencv
-from dbb_capture.errors import DbbError
-from dbb_capture.fields import psnr
-from dbb_capture.proxy import read_glb, transform_points
+from dbb_capture.bundle import build as B
+from dbb_capture.geometry.cameras import opengl_from_opencv
+from dbb_capture.core.errors import DbbError
+from dbb_capture.static.field import psnr
+from dbb_capture.bundle.proxy import read_glb, transform_points
 from common import emit  # bench/ is the script folder: on sys.path
 
 
@@ -74,21 +74,21 @@ def flipped_byte_caught(bundle: Path, scratch: Path) -> dict:
 
 
 def bench_static(run: Path, out: Path, capture: Path | None, seed: int, res: int) -> dict:
-    from dbb_capture.datasets import load_dataset, load_rgba
-    from dbb_capture.octree import TreeRenderer
-    from dbb_capture.plenoctree import load_run
+    from dbb_capture.datasets.records import load_dataset, load_rgba
+    from dbb_capture.octree.render import TreeRenderer
+    from dbb_capture.static.run import load_run
 
     out.mkdir(parents=True, exist_ok=True)
     t = time.perf_counter()
     m = B.make_bundle(run, out / "bundle", overwrite=True)
     bundle_s = time.perf_counter() - t
     if capture is not None:
-        from dbb_capture.synth import load_ground_truth
+        from dbb_capture.synth.scene import load_ground_truth
 
         model = load_ground_truth(capture)[2]
     else:
-        from dbb_capture.board import BoardSpec
-        from dbb_capture.synth import make_object
+        from dbb_capture.capture.board import BoardSpec
+        from dbb_capture.synth.scene import make_object
 
         model = make_object("static", BoardSpec(7, 5, 0.05, 0.0375, "DICT_5X5_100"), np.random.default_rng(seed))
     # Voxelise both over the object's cube in the board frame.
@@ -137,7 +137,7 @@ def bench_static(run: Path, out: Path, capture: Path | None, seed: int, res: int
 def hull_iou(m, bundle: Path, times: np.ndarray, seed: int, res: int) -> dict:
     """IoU of the proxy with the synthetic dynamic toy (``rssm.synthetic_crops``' object, ``seed``):
     against what it occupies in >= 90 % of the frame times (what the carving keeps), and at t = 0."""
-    from dbb_capture.synth import SynthConfig, make_object
+    from dbb_capture.synth.scene import SynthConfig, make_object
 
     model = make_object("dynamic", SynthConfig().board, np.random.default_rng(seed))
     c, r = m.center, m.radius
@@ -156,7 +156,7 @@ def hull_iou(m, bundle: Path, times: np.ndarray, seed: int, res: int) -> dict:
 
 
 def bench_dynamic(run: Path, out: Path, seed: int | None, res: int) -> dict:
-    from dbb_capture.rssm import rollout
+    from dbb_capture.dynamic.rssm import rollout
 
     out.mkdir(parents=True, exist_ok=True)
     t = time.perf_counter()

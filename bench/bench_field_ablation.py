@@ -16,8 +16,8 @@ from pathlib import Path
 
 import torch
 
-from dbb_capture.fields import FieldConfig
-from dbb_capture.plenoctree import RunConfig, train_run
+from dbb_capture.static.field import FieldConfig
+from dbb_capture.static.run import RunConfig, train_run
 from common import emit  # bench/ is the script folder: on sys.path
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "nerf_lego"

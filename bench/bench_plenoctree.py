@@ -30,11 +30,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dbb_capture.cameras import Intrinsics, look_at
-from dbb_capture.datasets import Frame, ObjectVolume, load_dataset, scaled_intrinsics, write_transforms
-from dbb_capture.fields import TrainState, frame_tensors, psnr, render_image
-from dbb_capture.octree import TreeRenderer
-from dbb_capture.plenoctree import RunConfig, evaluate_views, load_run, mean_of, split_frames, train_run
+from dbb_capture.geometry.cameras import Intrinsics, look_at
+from dbb_capture.datasets.records import Frame, ObjectVolume, load_dataset, scaled_intrinsics, write_transforms
+from dbb_capture.static.field import TrainState, frame_tensors, psnr, render_image
+from dbb_capture.octree.render import TreeRenderer
+from dbb_capture.static.run import RunConfig, evaluate_views, load_run, mean_of, split_frames, train_run
 from common import emit  # bench/ is the script folder: on sys.path
 
 FOX_HELDOUT = ("0005", "0016", "0017", "0024", "0032", "0051", "0068", "0071", "0075", "0083", "0087",
@@ -107,8 +107,8 @@ def synth_dataset(out: Path, n_train: int = 60, n_test: int = 12, size: int = 12
     the object's centre like a crop camera. Test views are novel poses (interleaved azimuths)."""
     import cv2
 
-    from dbb_capture.board import BoardSpec
-    from dbb_capture.synth import SynthConfig, make_object, render_object_rgba
+    from dbb_capture.capture.board import BoardSpec
+    from dbb_capture.synth.scene import SynthConfig, make_object, render_object_rgba
 
     cfg = SynthConfig(seed=seed)
     model = make_object("static", BoardSpec(7, 5, 0.05, 0.0375, "DICT_5X5_100"), np.random.default_rng(seed))
@@ -152,7 +152,7 @@ def truth_crops(dataset: Path, capture: Path, out: Path) -> Path:
     Training on it measures the ceiling the field reaches with perfect mattes."""
     import cv2
 
-    from dbb_capture.synth import load_ground_truth, render_object_rgba
+    from dbb_capture.synth.scene import load_ground_truth, render_object_rgba
 
     ds = load_dataset(dataset)
     _, _, model = load_ground_truth(capture)
@@ -170,19 +170,19 @@ def truth_crops(dataset: Path, capture: Path, out: Path) -> Path:
 def footage_ceiling(capture: Path, size: int = 128, fill: float = 0.9, test_fraction: float = 0.2,
                     every: int = 8) -> dict:
     """The footage's own ceiling, through the capture's *true* cameras (no pose error): every
-    frame's crop camera (:func:`~dbb_capture.crops.crop_camera`, as preprocess makes it) cut
-    from the video (:func:`~dbb_capture.crops.cut_crop`, the same warp), alpha = the true
+    frame's crop camera (:func:`~dbb_capture.crops.camera.crop_camera`, as preprocess makes it) cut
+    from the video (:func:`~dbb_capture.crops.camera.cut_crop`, the same warp), alpha = the true
     full-frame coverage (ground-truth masks) through the same warp, the colour as observed or
     taken out of the true room (the scene rendered without the object through the crop camera,
     as a perfect matte would); scored against the object alone rendered through the crop camera,
     on black and white, for the crops of the time split's test part, the every-n-th crops and all."""
     import cv2
 
-    from dbb_capture.cameras import opencv_from_opengl
-    from dbb_capture.crops import crop_camera, cut_crop, split_by_time
-    from dbb_capture.io import capture_footage
-    from dbb_capture.matte import straight_rgba
-    from dbb_capture.synth import Renderer, load_ground_truth, render_object_rgba
+    from dbb_capture.geometry.cameras import opencv_from_opengl
+    from dbb_capture.crops.camera import crop_camera, cut_crop, split_by_time
+    from dbb_capture.capture.footage import capture_footage
+    from dbb_capture.crops.matte import straight_rgba
+    from dbb_capture.synth.scene import Renderer, load_ground_truth, render_object_rgba
 
     from bench_preprocess import synth_scene   # bench/ is the script folder: on sys.path
 
@@ -225,12 +225,12 @@ def footage_ceiling(capture: Path, size: int = 128, fill: float = 0.9, test_frac
 
 def carve_check(dataset: Path, capture: Path, res: int = 128, shares: tuple[float, ...] = (0.1, 0.2, 0.3),
                 min_views: int = 3) -> list[dict]:
-    """What carving (:func:`~dbb_capture.fields.carve_mask`) does on a synthetic capture's
+    """What carving (:func:`~dbb_capture.static.field.carve_mask`) does on a synthetic capture's
     dataset, from the mattes of its training crops: the share of the object sphere's lattice
     points (``res`` per axis) carved, the points inside the true object carved (ought to be
     none), and the share of the points further than 1.5 cells from the object that stay."""
-    from dbb_capture.fields import build_ray_bank, carve_mask
-    from dbb_capture.synth import load_ground_truth
+    from dbb_capture.static.field import build_ray_bank, carve_mask
+    from dbb_capture.synth.scene import load_ground_truth
 
     ds = load_dataset(dataset)
     vol = ds.volume
@@ -258,7 +258,7 @@ def resplit_crops(dataset: Path, out: Path, every: int) -> Path:
     ``every``-th crop (0, every, ...) is held out instead of the last 20% of the capture's time:
     novel views between training views, as NeRF benchmarks hold out (lego: every 8th), rather
     than views past the end of the training path."""
-    from dbb_capture.datasets import find_dataset_file
+    from dbb_capture.datasets.records import find_dataset_file
 
     src = find_dataset_file(dataset)
     doc = json.loads(src.read_text())
@@ -327,7 +327,7 @@ def score_crops(dataset: Path, capture: Path, every: int = 8) -> dict:
     black and white (the object alone rendered through each crop camera at its time) and where
     the error lies (:func:`error_parts`), for the held-out crops of both protocols (the time
     split's test part, every ``every``-th crop), the time split's training crops and all."""
-    from dbb_capture.synth import load_ground_truth, render_object_rgba
+    from dbb_capture.synth.scene import load_ground_truth, render_object_rgba
 
     frames = load_dataset(dataset).frames
     _, _, model = load_ground_truth(capture)
@@ -363,8 +363,8 @@ def bench_capture(dataset: Path, capture: Path, run_dir: Path, minutes: float | 
     ``holdout_every``: hold out every n-th crop instead of the dataset's split (:func:`resplit_crops`);
     ``prune_weight``: the bake's weight pruning (None: the default); ``depth``: the octree's
     (None: matching the lattice)."""
-    from dbb_capture.fields import FieldConfig
-    from dbb_capture.synth import load_ground_truth, render_object_rgba
+    from dbb_capture.static.field import FieldConfig
+    from dbb_capture.synth.scene import load_ground_truth, render_object_rgba
 
     if holdout_every:
         dataset = resplit_crops(dataset, run_dir.parent / f"{run_dir.name}.split{holdout_every}", holdout_every)

@@ -37,12 +37,12 @@ from pathlib import Path
 
 import numpy as np
 
-from dbb_capture.board import BoardSpec
-from dbb_capture.cameras import opencv_from_opengl
-from dbb_capture.io import VideoSource, open_footage
-from dbb_capture.poses import DetectorConfig, PoseConfig, estimate_poses
+from dbb_capture.capture.board import BoardSpec
+from dbb_capture.geometry.cameras import opencv_from_opengl
+from dbb_capture.capture.footage import VideoSource, open_footage
+from dbb_capture.poses.estimate import DetectorConfig, PoseConfig, estimate_poses
 
-# dbb_capture.synth (and torch with it) is imported inside the functions that render: spawned
+# dbb_capture.synth.scene (and torch with it) is imported inside the functions that render: spawned
 # pose workers re-import this main module, and torch would cost each of them seconds to load.
 
 # name, board, distortion, resolution
@@ -78,7 +78,7 @@ def errors(run, cams: dict, board: BoardSpec) -> dict:
 
 def board_in_view(cams: dict, board: BoardSpec, intr) -> np.ndarray:
     """Per frame: are all the board's corners inside the image (N,) bool."""
-    from dbb_capture.cameras import project_points
+    from dbb_capture.geometry.cameras import project_points
 
     obj = board.chessboard_corners()
     out = []
@@ -94,7 +94,7 @@ def accuracy(work: Path, seconds: float, fps: float, cases: list[int] | None = N
     the table's captures; other seeds render further captures with the same settings);
     ``refine``: also self-calibrated with ``--refine``; ``path_window``: the poses' fusion with the
     camera path (``PoseConfig.path_window``; 0: off; None: the default)."""
-    from dbb_capture.synth import SynthConfig, load_ground_truth, write_capture
+    from dbb_capture.synth.scene import SynthConfig, load_ground_truth, write_capture
 
     rows = []
     cases = list(range(len(CASES))) if cases is None else cases
@@ -167,7 +167,7 @@ def _cpu_seconds() -> float:
 def speed(work: Path, seconds: float, repeats: int) -> None:
     import cv2
 
-    from dbb_capture.synth import SynthConfig, load_ground_truth, write_capture
+    from dbb_capture.synth.scene import SynthConfig, load_ground_truth, write_capture
 
     cap = work / "speed1920"
     board = BoardSpec(7, 5, 0.05, 0.0375, "DICT_5X5_100")
@@ -221,8 +221,8 @@ def speed(work: Path, seconds: float, repeats: int) -> None:
 def calibration(work: Path) -> None:
     """`dbb-capture calibrate` on the accuracy captures (rendered by ``accuracy``): OpenCV's
     calibration (the default) against ``--precise``, errors against the true intrinsics."""
-    from dbb_capture.poses import calibrate_footage
-    from dbb_capture.synth import load_ground_truth
+    from dbb_capture.poses.estimate import calibrate_footage
+    from dbb_capture.synth.scene import load_ground_truth
 
     print("| capture | default: fx / fy err, cx / cy err (px), RMS px | `--precise`: same |")
     print("|---|---|---|")

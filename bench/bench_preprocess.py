@@ -52,14 +52,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from dbb_capture.cameras import Intrinsics, camera_rays, opencv_from_opengl, project_points
-from dbb_capture.crops import crop_maps, cut_crop
+from dbb_capture.geometry.cameras import Intrinsics, camera_rays, opencv_from_opengl, project_points
+from dbb_capture.crops.camera import crop_maps, cut_crop
 
 REPO = Path(__file__).resolve().parents[1]
 
 
 def _cam_from_frame(fr: dict):
-    from dbb_capture.crops import CropCamera, Viewpoint
+    from dbb_capture.crops.camera import CropCamera, Viewpoint
 
     intr = Intrinsics(fr["w"], fr["h"], fr["fl_x"], fr["fl_y"], fr["cx"], fr["cy"])
     vp = Viewpoint(**fr["viewpoint"])
@@ -125,12 +125,12 @@ def _estimated_c2w(dataset: Path, fr: dict) -> np.ndarray:
 
 
 def both_passes(crops: list, times: np.ndarray, fill: float, cfg, counts: np.ndarray | None = None) -> list[np.ndarray]:
-    """Straight RGBA (S, S, 4) uint8 (the output size) of every first-pass crop (:class:`~dbb_capture.crops.ObjectCrop`,
+    """Straight RGBA (S, S, 4) uint8 (the output size) of every first-pass crop (:class:`~dbb_capture.crops.camera.ObjectCrop`,
     in time order, ``times`` (N,) s) after the second pass, as the crops stage runs it: the
     capture's statistics (``counts``: summed sure object colours where a prediction was a guess),
     matte again, temporal median over neighbouring frames."""
-    from dbb_capture.crops import at_output, follows_previous, rematte as second, vote_neighbours, voted_rgba
-    from dbb_capture.matte import capture_matte
+    from dbb_capture.crops.camera import at_output, follows_previous, rematte as second, vote_neighbours, voted_rgba
+    from dbb_capture.crops.matte import capture_matte
 
     cap = capture_matte([oc.noise for oc in crops], counts, [oc.room_detail for oc in crops], cfg.sharp_min_detail)
     alphas = [second(oc, fill, cap, cfg) for oc in crops]
@@ -145,10 +145,10 @@ def rematte(capture: Path, dataset: Path) -> tuple[Path, Path]:
     dataset (``-first``, ``-two``) and returns them."""
     import shutil
 
-    from dbb_capture.background import BackgroundModel
-    from dbb_capture.crops import at_output, crop_windows, matte_scale, object_crop
-    from dbb_capture.io import open_footage
-    from dbb_capture.matte import MatteConfig, sure_object_counts
+    from dbb_capture.background.field import BackgroundModel
+    from dbb_capture.crops.camera import at_output, crop_windows, matte_scale, object_crop
+    from dbb_capture.capture.footage import open_footage
+    from dbb_capture.crops.matte import MatteConfig, sure_object_counts
 
     intr = Intrinsics.load(dataset / "camera.json")
     doc = json.loads((dataset / "crops.json").read_text())
@@ -184,8 +184,8 @@ def rematte(capture: Path, dataset: Path) -> tuple[Path, Path]:
 def synth_scene(capture: Path):
     """The synthetic capture's scene rebuilt from its ``ground_truth/synth_config.json`` (the
     renderer's room, table, board and object, exactly as ``dbb-capture synth`` drew them)."""
-    from dbb_capture.board import BoardSpec
-    from dbb_capture.synth import SynthConfig, make_scene
+    from dbb_capture.capture.board import BoardSpec
+    from dbb_capture.synth.scene import SynthConfig, make_scene
 
     d = json.loads((capture / "ground_truth" / "synth_config.json").read_text())
     d = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
@@ -201,9 +201,9 @@ def budget_crops(capture: Path, cache: Path, size: int = 64, fill: float = 0.9, 
     true coverage through the crop camera (``cover``, 0..1, ``samples`` x ``samples`` per pixel)
     and the capture's full-frame coverage cut through the crop warp (``warped``, 0..1: what
     ``score`` compares with); ``times`` (N,) s."""
-    from dbb_capture.crops import crop_camera
-    from dbb_capture.io import open_footage
-    from dbb_capture.synth import Renderer
+    from dbb_capture.crops.camera import crop_camera
+    from dbb_capture.capture.footage import open_footage
+    from dbb_capture.synth.scene import Renderer
 
     if cache.is_file():
         with np.load(cache) as z:
@@ -261,8 +261,8 @@ def budget(work: Path, captures: list[Path], fill: float = 0.9) -> list[dict]:
     (b) the matte of the real footage's crop against the perfect background (what the footage's
     noise, compression and chroma cost the matte; the rest of the ``quality`` figure is the
     background field's)."""
-    from dbb_capture.crops import ObjectCrop
-    from dbb_capture.matte import MatteConfig, matte_and_noise, sphere_disc
+    from dbb_capture.crops.camera import ObjectCrop
+    from dbb_capture.crops.matte import MatteConfig, matte_and_noise, sphere_disc
 
     cfg = MatteConfig()
     rows = []
@@ -344,12 +344,12 @@ def quality(work: Path, captures: list[Path], minutes: float, rescore: bool = Fa
 
 
 def speed(work: Path, minutes: float) -> None:
-    from dbb_capture.background import BackgroundModel
-    from dbb_capture.board import BoardSpec
-    from dbb_capture.crops import at_output, object_crop, rematte, up_from_cameras, voted_rgba
-    from dbb_capture.matte import capture_matte
-    from dbb_capture.io import open_footage
-    from dbb_capture.poses import DetectorConfig, detect_frames, fuse_with_path, pose_frames
+    from dbb_capture.background.field import BackgroundModel
+    from dbb_capture.capture.board import BoardSpec
+    from dbb_capture.crops.camera import at_output, object_crop, rematte, up_from_cameras, voted_rgba
+    from dbb_capture.crops.matte import capture_matte
+    from dbb_capture.capture.footage import open_footage
+    from dbb_capture.poses.estimate import DetectorConfig, detect_frames, fuse_with_path, pose_frames
 
     cap = work / "hd"
     if not (cap / "video.mp4").is_file():

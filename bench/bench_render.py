@@ -27,10 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
-from dbb_capture.cameras import Intrinsics, look_at
-from dbb_capture.datasets import load_dataset, scaled_intrinsics
-from dbb_capture.octree import PRUNE_WEIGHT, PlenOctree, TreeRenderer, build_tree
-from dbb_capture.plenoctree import RunConfig, evaluate_views, load_run, mean_of, split_frames
+from dbb_capture.geometry.cameras import Intrinsics, look_at
+from dbb_capture.datasets.records import load_dataset, scaled_intrinsics
+from dbb_capture.octree.render import PRUNE_WEIGHT, PlenOctree, TreeRenderer, build_tree
+from dbb_capture.static.run import RunConfig, evaluate_views, load_run, mean_of, split_frames
 from common import emit  # bench/ is the script folder: on sys.path
 
 
@@ -84,8 +84,8 @@ def rebake(run_dir: Path, out: Path, prune_weight: float) -> dict:
     benchmarked like the original)."""
     import torch
 
-    from dbb_capture.fields import TrainState
-    from dbb_capture.octree import bake
+    from dbb_capture.static.field import TrainState
+    from dbb_capture.octree.render import bake
 
     run = load_run(run_dir)
     st = TrainState.load(run_dir / "checkpoint.pt", torch.device("cpu"))
@@ -97,7 +97,7 @@ def rebake(run_dir: Path, out: Path, prune_weight: float) -> dict:
 def prune(run_dir: Path, out: Path, prune_weight: float) -> dict:
     """``run_dir``'s stored tree weight-pruned (:func:`prune_by_weight`, its training cameras)
     into the run folder ``out``: the bake's last step alone, so thresholds compare quickly."""
-    from dbb_capture.octree import prune_by_weight
+    from dbb_capture.octree.render import prune_by_weight
 
     run = load_run(run_dir)
     t = time.perf_counter()

@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dbb_capture import rssm
+from dbb_capture.dynamic import rssm as rssm
 
 
 def speed(size: int, steps: int = 300, settings: list[str] = (), repeat: int = 1) -> dict:
@@ -74,8 +74,8 @@ def still_truth(dataset: Path, capture: Path, steps: int = 150, samples: int = 2
     the truth is the capture's ground-truth object rendered through that frame's crop camera
     (preprocess poses are in the board frame, as the synthetic world) for ``steps`` more frames.
     """
-    from dbb_capture.cameras import Intrinsics, opencv_from_opengl
-    from dbb_capture.synth import load_ground_truth, render_object_rgba
+    from dbb_capture.geometry.cameras import Intrinsics, opencv_from_opengl
+    from dbb_capture.synth.scene import load_ground_truth, render_object_rgba
 
     doc = json.loads((Path(dataset) / "crops.json").read_text())
     frames = doc["frames"]

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dbb_capture.synth import Renderer, SynthConfig, camera_path, make_scene, write_capture
+from dbb_capture.synth.scene import Renderer, SynthConfig, camera_path, make_scene, write_capture
 
 
 def main() -> None:

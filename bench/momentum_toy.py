@@ -23,7 +23,7 @@ import torch
 from torch import nn
 
 from bench_rssm import centroids, spread
-from dbb_capture import rssm
+from dbb_capture.dynamic import rssm as rssm
 
 
 def forecast(cell: nn.GRUCell, head: nn.Linear, seq: torch.Tensor, context: int) -> torch.Tensor:

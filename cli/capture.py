@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from dbb_capture.progress import console
+from dbb_capture.core.progress import console
 
 from .common import DbbGroup, overwrite_option
 
@@ -72,8 +72,8 @@ def synth(out: Path, kind: str, seconds: float, background_seconds: float | None
     Writes video.mp4, background.mp4 (clean plate), board.json, object.json, camera.json
     and ground_truth/ (intrinsics, per-frame poses, object masks, the object's model).
     """
-    from dbb_capture.board import BoardSpec
-    from dbb_capture.synth import SynthConfig, write_capture
+    from dbb_capture.capture.board import BoardSpec
+    from dbb_capture.synth.scene import SynthConfig, write_capture
 
     try:
         w, h = (int(v) for v in resolution.lower().split("x"))
@@ -126,12 +126,12 @@ def calibrate(input_path: Path, board_path: Path | None, output: Path, fps: floa
     result is OpenCV's calibration of the same corners; --precise is more accurate from many
     views (see docs/commands/calibrate.md).
     """
-    from dbb_capture.board import BoardSpec
-    from dbb_capture.errors import DbbError
-    from dbb_capture.io import open_footage
-    from dbb_capture.outputs import write_json
-    from dbb_capture.poses import calibrate_footage
-    from dbb_capture.progress import progress
+    from dbb_capture.capture.board import BoardSpec
+    from dbb_capture.core.errors import DbbError
+    from dbb_capture.capture.footage import open_footage
+    from dbb_capture.core.outputs import write_json
+    from dbb_capture.poses.estimate import calibrate_footage
+    from dbb_capture.core.progress import progress
 
     if output.exists() and not overwrite:
         raise DbbError(f"{output} already exists (pass --overwrite to replace it)")
@@ -215,8 +215,8 @@ def preprocess(capture: Path, output: Path, board_path: Path | None, camera_path
     """
     from dataclasses import replace
 
-    from dbb_capture.background import BackgroundConfig
-    from dbb_capture.preprocess import PreprocessConfig, resolve_capture, run_preprocess
+    from dbb_capture.background.field import BackgroundConfig
+    from dbb_capture.preprocess.run import PreprocessConfig, resolve_capture, run_preprocess
 
     window = None
     if crop_window is not None:

@@ -6,8 +6,8 @@ import sys
 
 import click
 
-from dbb_capture.errors import DbbError
-from dbb_capture.progress import console
+from dbb_capture.core.errors import DbbError
+from dbb_capture.core.progress import console
 
 
 class DbbGroup(click.Group):

@@ -26,8 +26,8 @@ def main() -> None:
 def bundle(run, out, zip_it, dataset, overwrite) -> None:
     """Package the finished training RUN (dbb-train plenoctree or rssm) as a billboard bundle:
     manifest, model, proxy mesh (.glb, bundle space) and previews."""
-    from dbb_capture.bundle import make_bundle
-    from dbb_capture.progress import console
+    from dbb_capture.bundle.build import make_bundle
+    from dbb_capture.core.progress import console
 
     m = make_bundle(run, out, zip_it, dataset, overwrite)
     pm = m.proxy_mesh
@@ -50,8 +50,8 @@ def bundle(run, out, zip_it, dataset, overwrite) -> None:
 @overwrite_option
 def render(bundle, cameras, out, first_frame, space, overwrite) -> None:
     """Render the BUNDLE (folder or .dbb) from every camera of a cameras file."""
-    from dbb_capture.bundle import render_bundle
-    from dbb_capture.progress import console
+    from dbb_capture.bundle.build import render_bundle
+    from dbb_capture.core.progress import console
 
     paths = render_bundle(bundle, cameras, out, first_frame, space, overwrite)
     console.print(f"wrote {len(paths)} RGBA PNGs to {out}", soft_wrap=True)
@@ -62,8 +62,8 @@ def render(bundle, cameras, out, first_frame, space, overwrite) -> None:
 def verify(bundle) -> None:
     """Check BUNDLE: manifest checksum and schema, file hashes, model and proxy mesh load, and a
     fresh render matches the stored preview. Exit 2 with the first failure."""
-    from dbb_capture.bundle import verify_bundle
-    from dbb_capture.progress import console
+    from dbb_capture.bundle.build import verify_bundle
+    from dbb_capture.core.progress import console
 
     for line in verify_bundle(bundle):
         console.print(f"[green]ok[/green] {line}", soft_wrap=True)

@@ -66,9 +66,9 @@ def plenoctree(dataset, out, minutes, steps, downscale, resume, overwrite, mode,
     DATASET is a preprocess output (crops.json) or a nerfstudio / instant-ngp / Blender
     dataset folder or json file.
     """
-    from dbb_capture.fields import FieldConfig
-    from dbb_capture.plenoctree import RunConfig, train_run
-    from dbb_capture.progress import console
+    from dbb_capture.static.field import FieldConfig
+    from dbb_capture.static.run import RunConfig, train_run
+    from dbb_capture.core.progress import console
 
     if threads:
         import torch
@@ -125,7 +125,7 @@ def rssm(dataset, out, minutes, steps, size, batch, threads, seed, temperature, 
     """
     import torch
 
-    from dbb_capture.rssm import RssmConfig, TrainConfig, configs_from_settings, resume_configs, train_run
+    from dbb_capture.dynamic.rssm import RssmConfig, TrainConfig, configs_from_settings, resume_configs, train_run
 
     if threads:
         torch.set_num_threads(threads)
@@ -153,7 +153,7 @@ def rssm(dataset, out, minutes, steps, size, batch, threads, seed, temperature, 
               help="Fit the run-time temperature to the footage again (as training does by default).")
 def rssm_eval(run, dataset, temperature, calibrate) -> None:
     """Re-run the evaluation of an RSSM RUN folder (rewrites RUN/report/ and run.json's eval)."""
-    from dbb_capture.rssm import eval_run
+    from dbb_capture.dynamic.rssm import eval_run
 
     if calibrate and temperature is not None:
         raise click.UsageError("give --temperature or --calibrate, not both")
@@ -161,7 +161,7 @@ def rssm_eval(run, dataset, temperature, calibrate) -> None:
 
 
 def _print_rssm(out: Path, ev: dict, what: str) -> None:
-    from dbb_capture.progress import console
+    from dbb_capture.core.progress import console
 
     p = ev["mean_psnr_db"]
     console.print(f"wrote {out}: {what}; 10-step open-loop PSNR {p['model']:.2f} dB "

@@ -43,8 +43,8 @@ def _u8(rgb: np.ndarray) -> np.ndarray:
 
 
 def figures(out: Path, bundle: Path | None) -> list[Path]:
-    from dbb_capture.cameras import look_at
-    from dbb_capture.synth import UP, Renderer, SynthConfig, camera_path, make_scene
+    from dbb_capture.geometry.cameras import look_at
+    from dbb_capture.synth.scene import UP, Renderer, SynthConfig, camera_path, make_scene
 
     out.mkdir(parents=True, exist_ok=True)
     made = []
@@ -117,8 +117,8 @@ def _path_plot(path: Path, poses: np.ndarray, c_obj: np.ndarray, rad: float, boa
 
 def _bundle_figures(out: Path, bundle: Path) -> list[Path]:
     """The bundle's preview sheet over a checkerboard, and its proxy mesh drawn over view 0."""
-    from dbb_capture import bundle as B
-    from dbb_capture.proxy import read_glb, transform_points
+    from dbb_capture.bundle import build as B
+    from dbb_capture.bundle.proxy import read_glb, transform_points
 
     with B.open_bundle(bundle) as b:
         m = b.manifest
@@ -130,7 +130,7 @@ def _bundle_figures(out: Path, bundle: Path) -> list[Path]:
         cell = B.over_checker(B.cell(sheet, 0, cols, S))
         col = read_glb(b.file(m.proxy_mesh["file"]))["proxy-colonly"]
         v_board = transform_points(np.linalg.inv(m.T), np.asarray(col.vertices))
-        from dbb_capture.cameras import project_points
+        from dbb_capture.geometry.cameras import project_points
 
         uv = project_points(v_board, view.c2w, view.intr)
         img = cv2.resize(cv2.cvtColor(cell, cv2.COLOR_RGB2BGR), (3 * S, 3 * S), interpolation=cv2.INTER_NEAREST)

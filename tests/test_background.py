@@ -10,13 +10,13 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from dbb_capture.background import (BackgroundConfig, LayerField, PosedView, RayBank, new_field, parallax_coverage,
+from dbb_capture.background.field import (BackgroundConfig, LayerField, PosedView, RayBank, new_field, parallax_coverage,
                                     pinhole_rays, train_background, training_size)
-from dbb_capture.cameras import Intrinsics, look_at, opencv_from_opengl, project_points
+from dbb_capture.geometry.cameras import Intrinsics, look_at, opencv_from_opengl, project_points
 from dbb_capture.cli.capture import main
-from dbb_capture.crops import crop_camera, crop_maps, object_crop, up_from_cameras
-from dbb_capture.io import open_footage
-from dbb_capture.synth import SynthConfig, load_ground_truth, write_capture
+from dbb_capture.crops.camera import crop_camera, crop_maps, object_crop, up_from_cameras
+from dbb_capture.capture.footage import open_footage
+from dbb_capture.synth.scene import SynthConfig, load_ground_truth, write_capture
 
 UP = np.array([0.0, 0.0, -1.0])
 
@@ -267,8 +267,8 @@ def test_fixed_camera_mode_on_real_pendulum_footage(tmp_path):
 def test_second_matte_pass_votes_across_segment_cuts(tmp_path):
     """The crops stage's second pass gives the same crops in one segment or in three (each sees its
     neighbours across the cut), and the temporal median skips a gap in time."""
-    from dbb_capture.matte import CaptureMatte, MatteConfig
-    from dbb_capture.preprocess import _FirstMatte, _matte_segment, _MatteSegment
+    from dbb_capture.crops.matte import CaptureMatte, MatteConfig
+    from dbb_capture.preprocess.run import _FirstMatte, _matte_segment, _MatteSegment
 
     center = np.array([0.3, 0.2, -0.08])
     c2ws = _ring(center, n=8)
@@ -313,7 +313,7 @@ def _wall_bank(center, radius_wall=2.5, n_views=16, size=40):
         eye = m[:3, 3]
         target = center + 2.0 * (center - eye) * np.array([1.0, 1.0, 0.0]) + np.array([0.0, 0.0, -0.8])
         cam = look_at(eye, target, UP)
-        from dbb_capture.cameras import Intrinsics
+        from dbb_capture.geometry.cameras import Intrinsics
 
         o, d = pinhole_rays(Intrinsics(size, size, 60.0, 60.0, (size - 1) / 2, (size - 1) / 2), cam)
         oc = o - center
@@ -330,7 +330,7 @@ def _wall_bank(center, radius_wall=2.5, n_views=16, size=40):
 def test_far_sphere_depth_sweep_finds_the_wall():
     """The sweep puts the far sphere's texels at the wall's distance (the views' rays agree there),
     and the field renders the wall from its texels sharper than a sphere at the default radius."""
-    from dbb_capture.background import env_coords, with_env_depth
+    from dbb_capture.background.field import env_coords, with_env_depth
 
     center = np.array([0.3, 0.2, -0.08])
     bank = _wall_bank(center)
@@ -355,7 +355,7 @@ def test_far_sphere_depth_sweep_finds_the_wall():
 
 
 def test_room_rays_keep_away_from_the_matte():
-    from dbb_capture.background import room_rays
+    from dbb_capture.background.field import room_rays
 
     center = np.array([0.3, 0.2, -0.08])
     cam = crop_camera(_ring(center)[3], _intr(), center, 0.1, UP, 32, 0.9)
@@ -372,7 +372,7 @@ def test_room_rays_keep_away_from_the_matte():
 def test_refine_on_room_trains_again_and_sees_under_a_moving_object(plate_capture, tmp_path):
     """Without a plate the field is trained again on the first mattes' room rays (full size, its
     own budget); board-plane texels those rays reach stop being guesses; the model round-trips."""
-    from dbb_capture.background import BackgroundModel, refine_on_room, room_rays
+    from dbb_capture.background.field import BackgroundModel, refine_on_room, room_rays
 
     cap = plate_capture
     obj = json.loads((cap / "object.json").read_text())
@@ -402,7 +402,7 @@ def test_preprocess_without_plate_trains_the_field_again_on_the_mattes_room(plat
     assert res.exit_code == 0, res.output
     rep = json.loads((ds / "background" / "report.json").read_text())
     assert rep["mode"].startswith("object video") and rep["refined_on_room"]["steps"] > 0
-    from dbb_capture.background import BackgroundModel
+    from dbb_capture.background.field import BackgroundModel
 
     assert BackgroundModel.load(ds / "background" / "field.pt").refine.steps == rep["refined_on_room"]["steps"]
     fr = json.loads((ds / "crops.json").read_text())["frames"][0]

@@ -5,8 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from dbb_capture.board import BoardSpec
-from dbb_capture.errors import DbbError
+from dbb_capture.capture.board import BoardSpec
+from dbb_capture.core.errors import DbbError
 
 
 def test_board_json_round_trip(tmp_path):

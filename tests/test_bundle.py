@@ -12,8 +12,8 @@ import torch
 from click.testing import CliRunner
 from dbb_capture.cli.export import main
 
-from dbb_capture import bundle as B
-from dbb_capture.errors import DbbError
+from dbb_capture.bundle import build as B
+from dbb_capture.core.errors import DbbError
 
 torch.set_num_threads(1)
 
@@ -27,9 +27,9 @@ def static_run(tmp_path_factory):
     """A tiny PlenOctree run (a few steps on 24 px views of the synthetic toy)."""
     from test_fields import synthetic_object_frames
 
-    from dbb_capture.datasets import write_transforms
-    from dbb_capture.fields import FieldConfig
-    from dbb_capture.plenoctree import RunConfig, train_run
+    from dbb_capture.datasets.records import write_transforms
+    from dbb_capture.static.field import FieldConfig
+    from dbb_capture.static.run import RunConfig, train_run
 
     folder = tmp_path_factory.mktemp("bundle_static")
     (folder / "ds").mkdir()
@@ -51,7 +51,7 @@ def static_bundle(static_run):
 
 @pytest.fixture(scope="module")
 def dynamic_run(tmp_path_factory):
-    from dbb_capture import rssm
+    from dbb_capture.dynamic import rssm as rssm
 
     folder = tmp_path_factory.mktemp("bundle_dynamic")
     rssm.synthetic_crops(folder / "ds", seconds=3.0, fps=10, size=32, still_steps=1, samples=1)
@@ -120,7 +120,7 @@ def test_zip_bundle_verifies_and_a_damaged_zip_does_not(static_run, tmp_path):
 
 
 def _cameras(frames, path, per_frame=False, drop_intrinsics=False):
-    from dbb_capture.cameras import opengl_from_opencv
+    from dbb_capture.geometry.cameras import opengl_from_opencv
 
     doc = {"frames": [{"file_path": f"images/{f.name}.jpg",
                        "transform_matrix": opengl_from_opencv(f.c2w).tolist()} for f in frames]}
@@ -136,7 +136,7 @@ def _cameras(frames, path, per_frame=False, drop_intrinsics=False):
 
 
 def test_render_equals_the_runs_tree_and_reads_both_intrinsic_layouts(static_run, static_bundle, tmp_path):
-    from dbb_capture.octree import PlenOctree, TreeRenderer
+    from dbb_capture.octree.render import PlenOctree, TreeRenderer
 
     folder, frames = static_run
     test = frames[:3]
@@ -156,7 +156,7 @@ def test_render_equals_the_runs_tree_and_reads_both_intrinsic_layouts(static_run
 
 
 def test_render_in_bundle_space_matches_board_space(static_bundle, static_run, tmp_path):
-    from dbb_capture.cameras import opencv_from_opengl, opengl_from_opencv
+    from dbb_capture.geometry.cameras import opencv_from_opengl, opengl_from_opencv
 
     _, frames = static_run
     T = np.asarray(json.loads((static_bundle / "manifest.json").read_text())["bundle_from_board"])
@@ -209,7 +209,7 @@ def test_bad_input_is_one_line_exit_2_and_leaves_nothing(static_run, static_bund
 def test_dynamic_bundle_verifies_renders_in_order_and_has_a_proxy(dynamic_run, tmp_path):
     import trimesh
 
-    from dbb_capture.proxy import read_glb
+    from dbb_capture.bundle.proxy import read_glb
 
     folder = dynamic_run
     res = _cli("bundle", folder / "run", "-o", folder / "bundle")
@@ -253,7 +253,7 @@ def test_dynamic_bundle_verifies_renders_in_order_and_has_a_proxy(dynamic_run, t
 
 
 def test_dynamic_proxy_falls_back_to_a_sphere_and_says_why(dynamic_run, tmp_path):
-    from dbb_capture.proxy import bundle_from_board, dynamic_proxy
+    from dbb_capture.bundle.proxy import bundle_from_board, dynamic_proxy
 
     doc = json.loads((dynamic_run / "ds/crops.json").read_text())
     doc["frames"] = doc["frames"][:2]
@@ -265,8 +265,8 @@ def test_dynamic_proxy_falls_back_to_a_sphere_and_says_why(dynamic_run, tmp_path
 
 
 def test_preview_orbit_agrees_with_the_viewpoint_convention():
-    from dbb_capture.crops import viewpoint
-    from dbb_capture.proxy import bundle_from_board
+    from dbb_capture.crops.camera import viewpoint
+    from dbb_capture.bundle.proxy import bundle_from_board
 
     c = np.array([0.4, 0.1, -0.09])
     for up in (np.array([0, 0, -1.0]), np.array([0, 0, 1.0])):

@@ -13,11 +13,11 @@ import pytest
 from click.testing import CliRunner
 
 from conftest import shared_data
-from dbb_capture.board import BoardSpec
-from dbb_capture.cameras import Intrinsics, look_at, project_points
+from dbb_capture.capture.board import BoardSpec
+from dbb_capture.geometry.cameras import Intrinsics, look_at, project_points
 from dbb_capture.cli.capture import main
-from dbb_capture.io import Frame
-from dbb_capture.poses import Detection, calibrate, detect_frames, pose_frames
+from dbb_capture.capture.footage import Frame
+from dbb_capture.poses.estimate import Detection, calibrate, detect_frames, pose_frames
 
 REAL_BOARD = {"squares_x": 5, "squares_y": 7, "square_length": 0.04, "marker_length": 0.02,
               "dictionary": "DICT_6X6_250"}

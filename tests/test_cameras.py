@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from dbb_capture.cameras import (Intrinsics, camera_rays, invert_rigid, look_at,
+from dbb_capture.geometry.cameras import (Intrinsics, camera_rays, invert_rigid, look_at,
                                  opencv_from_opengl, opengl_from_opencv, pixel_grid, project_points)
 
 

@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from dbb_capture.cameras import Intrinsics, look_at, project_points
-from dbb_capture.crops import (at_output, crop_camera, crop_maps, cut_crop, follows_previous, matte_scale, object_crop,
+from dbb_capture.geometry.cameras import Intrinsics, look_at, project_points
+from dbb_capture.crops.camera import (at_output, crop_camera, crop_maps, cut_crop, follows_previous, matte_scale, object_crop,
                                premultiplied_down, sequence_windows, split_by_time, up_from_cameras, viewpoint)
-from dbb_capture.synth import SynthConfig, make_scene, render_object_rgba
+from dbb_capture.synth.scene import SynthConfig, make_scene, render_object_rgba
 
 UP = np.array([0.0, 0.0, -1.0])
 SRC = Intrinsics(640, 480, 520.0, 522.0, 321.4, 238.2, (-0.25, 0.07, 0.0006, -0.0004, -0.008))
@@ -170,7 +170,7 @@ def test_follows_previous_breaks_at_gaps():
 def test_crop_record_names_the_observed_crop_and_its_predicted_room():
     """crops.json keeps what each matte was cut from (training composites over that room), and
     says nothing for a crop that has no such files (one past the frame's border)."""
-    from dbb_capture.crops import CropRecord
+    from dbb_capture.crops.camera import CropRecord
 
     center = np.array([0.3, 0.2, -0.08])
     cam = crop_camera(_camera(center, 30, 40, 0.6, 0), SRC, center, 0.1, UP)

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from conftest import shared_data
 
-from dbb_capture.cameras import Intrinsics, look_at, opengl_from_opencv, project_points
-from dbb_capture.datasets import (Frame, ObjectVolume, estimate_volume, frame_rays, holdout_every,
+from dbb_capture.geometry.cameras import Intrinsics, look_at, opengl_from_opencv, project_points
+from dbb_capture.datasets.records import (Frame, ObjectVolume, estimate_volume, frame_rays, holdout_every,
                                   load_dataset, load_rgba, scaled_intrinsics, write_transforms)
-from dbb_capture.errors import DbbError
+from dbb_capture.core.errors import DbbError
 
 INTR = Intrinsics(40, 30, 50.0, 52.0, 19.3, 14.6, (0.05, -0.02, 0.001, -0.002, 0.0))
 
@@ -96,7 +96,7 @@ def test_rays_pass_through_projected_points_with_distortion():
     for p, (u, v) in zip(pts, uv):
         if not (0 <= u < INTR.width - 1 and 0 <= v < INTR.height - 1):
             continue
-        from dbb_capture.cameras import camera_rays
+        from dbb_capture.geometry.cameras import camera_rays
         dc = camera_rays(INTR, np.array([[u, v]]))[0]
         dw = c2w[:3, :3] @ dc
         want = (p - c2w[:3, 3]) / np.linalg.norm(p - c2w[:3, 3])

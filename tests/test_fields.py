@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 import torch
 
-from dbb_capture.board import BoardSpec
-from dbb_capture.cameras import Intrinsics, look_at, opengl_from_opencv
-from dbb_capture.datasets import Frame, ObjectVolume
-from dbb_capture.fields import (Budget, FieldConfig, TrainState, build_ray_bank, contract, frame_tensors,
+from dbb_capture.capture.board import BoardSpec
+from dbb_capture.geometry.cameras import Intrinsics, look_at, opengl_from_opencv
+from dbb_capture.datasets.records import Frame, ObjectVolume
+from dbb_capture.static.field import (Budget, FieldConfig, TrainState, build_ray_bank, contract, frame_tensors,
                                 lattice_for_views, new_field, psnr, render_image, sh_basis, stage_resolutions, train)
 
 
@@ -21,7 +21,7 @@ def synthetic_object_frames(folder, n=24, size=32, seed=0):
     """RGBA renders of the synthetic toy from known poses around it (every 8th held out)."""
     import cv2
 
-    from dbb_capture.synth import make_object, render_object_rgba
+    from dbb_capture.synth.scene import make_object, render_object_rgba
 
     model = make_object("static", BoardSpec(7, 5, 0.05, 0.0375, "DICT_5X5_100"), np.random.default_rng(seed))
     c, r = model.bounding_sphere(np.array([0.0]))
@@ -131,7 +131,7 @@ def test_final_steps_fine_tune_what_the_tree_renders(trained):
     """From ``nearest_from`` on, samples read the nearest lattice point (the tree's piecewise
     constant leaves), so the baked tree renders what the field learned; a trilinear field's
     tree does not (26 dB between field and tree on this toy when trained without the phase)."""
-    from dbb_capture.octree import TreeRenderer, bake
+    from dbb_capture.octree.render import TreeRenderer, bake
 
     frames, _, state, folder = trained
     assert state.field.nearest
@@ -160,7 +160,7 @@ def test_cpu_kernel_matches_autograd(nearest, sh_active):
     interpolating trilinearly or (the tree fine-tuning phase) reading the nearest point, and
     with the opacity prior; with the degree-2 band not yet in use (progressive SH), it neither
     colours nor gets a gradient."""
-    from dbb_capture.fields import (VoxelField, cpu_photometric_step, cpu_tv_step, opacity_prior, render_rays,
+    from dbb_capture.static.field import (VoxelField, cpu_photometric_step, cpu_tv_step, opacity_prior, render_rays,
                                     tv_loss)
 
     torch.manual_seed(3)
@@ -246,8 +246,8 @@ def test_observed_pixels_over_the_predicted_room_correct_a_bad_matte(tmp_path):
     see-through; trained on the matte alone it does."""
     import cv2
 
-    from dbb_capture.datasets import load_dataset
-    from dbb_capture.fields import ray_targets
+    from dbb_capture.datasets.records import load_dataset
+    from dbb_capture.static.field import ray_targets
 
     frames, vol = synthetic_object_frames(tmp_path, n=24, size=24)
     rng = np.random.default_rng(3)
@@ -317,7 +317,7 @@ def test_robust_training_lets_the_views_outvote_a_false_object(tmp_path):
     The IRLS weights themselves: 1 for unseen rays, falling with the ray's running error."""
     import cv2
 
-    from dbb_capture.fields import robust_weights
+    from dbb_capture.static.field import robust_weights
 
     frames, vol = synthetic_object_frames(tmp_path, n=24, size=24)
     truth = {f.name: cv2.imread(str(f.image_path), cv2.IMREAD_UNCHANGED) for f in frames}
@@ -377,8 +377,8 @@ def test_carving_keeps_the_object_and_clears_what_the_views_see_through(tmp_path
     (the footprint and a pixel of slack keep the outline), most of the sphere around it is;
     a point that fewer than ``min_views`` views (or less than ``share`` of those that see it)
     see as empty stays; carving a field drops exactly those points."""
-    from dbb_capture.fields import VoxelField, carve_mask
-    from dbb_capture.synth import make_object
+    from dbb_capture.static.field import VoxelField, carve_mask
+    from dbb_capture.synth.scene import make_object
 
     frames, vol = synthetic_object_frames(tmp_path, n=24, size=32)
     bank = build_ray_bank([f for f in frames if f.split == "train"], 1, vol)

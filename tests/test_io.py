@@ -13,8 +13,8 @@ import pytest
 from click.testing import CliRunner
 
 from dbb_capture.cli.capture import main
-from dbb_capture.errors import DbbError, InputError
-from dbb_capture.io import (Frame, ImageFolderSource, R3dSource, RawFolderSource, VideoSource, blurry_mask,
+from dbb_capture.core.errors import DbbError, InputError
+from dbb_capture.capture.footage import (Frame, ImageFolderSource, R3dSource, RawFolderSource, VideoSource, blurry_mask,
                             open_footage, sample_indices, sharpness)
 
 
@@ -144,7 +144,7 @@ def test_cli_unreadable_footage_exits_2(tmp_path, make):
 
 
 def test_prefetched_keeps_order_and_raises_decoder_errors():
-    from dbb_capture.io import prefetched
+    from dbb_capture.capture.footage import prefetched
 
     def gen():
         for i in range(10):

@@ -6,10 +6,10 @@ import cv2
 import numpy as np
 import pytest
 
-from dbb_capture.crops import crop_camera, cut_crop
+from dbb_capture.crops.camera import crop_camera, cut_crop
 from dataclasses import replace
 
-from dbb_capture.matte import (
+from dbb_capture.crops.matte import (
     CaptureMatte,
     MatteConfig,
     capture_matte,
@@ -26,8 +26,8 @@ from dbb_capture.matte import (
     sure_object_counts,
     temporal_median,
 )
-from dbb_capture.synth import UP, Renderer, SynthConfig, make_scene, render_object_rgba, sensor
-from dbb_capture.cameras import look_at
+from dbb_capture.synth.scene import UP, Renderer, SynthConfig, make_scene, render_object_rgba, sensor
+from dbb_capture.geometry.cameras import look_at
 
 
 @pytest.fixture(scope="module")
@@ -282,7 +282,7 @@ def test_noise_map_keeps_a_mispredicted_wall_out_of_the_object():
 def test_edge_gain_scales_the_compositing_alpha_of_mixed_pixels():
     """A shaded rim reads as part room: the compositing alpha of the band's mixed pixels is
     scaled by ``gain`` (clipped to 1); inside and hard-decided pixels keep 1 / 0."""
-    from dbb_capture.matte import _edge_alpha
+    from dbb_capture.crops.matte import _edge_alpha
 
     F, B = np.array([60.0, 90.0, 220.0]), np.array([200.0, 170.0, 120.0])
     obs = np.tile(B, (16, 16, 1))
@@ -302,7 +302,7 @@ def test_shaded_rim_alpha_recovers_the_coverage_where_the_plain_equation_runs_lo
     """A rim shaded darker than the object's inside: I = (1 - a) B + a (s F) with s < 1. The
     plain compositing equation (F from inside) reads it low; the shaded-rim model recovers a
     wherever room and object differ in hue, and leaves same-hue pixels to the plain equation."""
-    from dbb_capture.matte import _edge_alpha, rim_alpha
+    from dbb_capture.crops.matte import _edge_alpha, rim_alpha
 
     rng = np.random.default_rng(3)
     F = rng.uniform(40, 230, (200, 3))

@@ -9,10 +9,10 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from dbb_capture.datasets import write_transforms
-from dbb_capture.fields import (Budget, FieldConfig, TrainState, build_ray_bank, frame_tensors, new_field,
+from dbb_capture.datasets.records import write_transforms
+from dbb_capture.static.field import (Budget, FieldConfig, TrainState, build_ray_bank, frame_tensors, new_field,
                                 psnr, render_image, train)
-from dbb_capture.octree import PlenOctree, TreeRenderer, bake, build_tree, leaf_cells
+from dbb_capture.octree.render import PlenOctree, TreeRenderer, bake, build_tree, leaf_cells
 
 
 def _descend(child, cell, depth):
@@ -124,7 +124,7 @@ def test_cli_writes_a_self_describing_run_and_rejects_bad_input(baked, tmp_path)
     import json
 
     from dbb_capture.cli.train import main
-    from dbb_capture.plenoctree import load_run
+    from dbb_capture.static.run import load_run
 
     frames, vol, *_ = baked
     write_transforms(tmp_path / "transforms.json", frames, vol)
@@ -208,7 +208,7 @@ def test_cpu_renderer_matches_the_torch_renderer_on_a_trained_tree(baked):
 
 
 def test_float16_decoding_is_exact():
-    from dbb_capture.octree_cpu import _half
+    from dbb_capture.octree.kernels import _half
 
     bits = np.arange(1 << 16, dtype=np.uint16)
     want = bits.view(np.float16).astype(np.float64)
@@ -218,7 +218,7 @@ def test_float16_decoding_is_exact():
 
 
 def test_fast_sigmoid_matches_numpy():
-    from dbb_capture.octree_cpu import _sigmoid
+    from dbb_capture.octree.kernels import _sigmoid
 
     v = np.linspace(-120, 120, 4001)
     got = np.array([_sigmoid(x) for x in v])
@@ -239,8 +239,8 @@ def test_colour_cache_does_not_leak_between_frames(baked):
 def test_threads_and_prefetch_mode_do_not_change_pixels(baked, monkeypatch):
     """Threads share one colour cache and the eager prefetch only reorders memory traffic:
     a frame is the same bit for bit with one thread or several, eager or not."""
-    import dbb_capture.octree as octree
-    from dbb_capture.datasets import scaled_intrinsics
+    import dbb_capture.octree.render as octree
+    from dbb_capture.datasets.records import scaled_intrinsics
 
     frames, vol, state, tree, _ = baked
     intr = scaled_intrinsics(frames[2].intr, 24 / 160)        # 160x160: several work items
@@ -263,7 +263,7 @@ def test_renderer_works_in_a_forked_child_after_the_parent_rendered(baked):
     """The render threads do not survive fork; a child must not wait on its parent's pool."""
     import multiprocessing as mp
 
-    from dbb_capture.datasets import scaled_intrinsics
+    from dbb_capture.datasets.records import scaled_intrinsics
 
     frames, vol, state, tree, _ = baked
     intr = scaled_intrinsics(frames[1].intr, 0.25)            # 96x96: more rays than one work item
@@ -293,8 +293,8 @@ def _wall_tree() -> tuple[PlenOctree, dict[str, tuple[int, int, int]]]:
 
 
 def test_weight_pruning_drops_hidden_and_faint_leaves_and_keeps_the_visible_ones():
-    from dbb_capture.cameras import Intrinsics, look_at
-    from dbb_capture.octree import leaf_max_weights, prune_by_weight
+    from dbb_capture.geometry.cameras import Intrinsics, look_at
+    from dbb_capture.octree.render import leaf_max_weights, prune_by_weight
 
     tree, named = _wall_tree()
     f = 16 / math.tan(math.radians(25))
@@ -328,7 +328,7 @@ def test_bake_with_training_cameras_prunes_without_changing_the_views(baked):
 
 
 def test_a_tree_finer_than_the_lattice_skips_the_nearest_lookup_phase():
-    from dbb_capture.plenoctree import for_tree_depth
+    from dbb_capture.static.run import for_tree_depth
 
     cfg = FieldConfig(res_max=128)
     assert for_tree_depth(cfg, 7).nearest_from == 1.0           # 256^3 leaves sample the trilinear field

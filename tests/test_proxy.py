@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from dbb_capture.proxy import (
+from dbb_capture.bundle.proxy import (
     MAX_TRIANGLES,
     bundle_from_board,
     density_level,

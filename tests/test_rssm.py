@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from dbb_capture import rssm
-from dbb_capture.errors import DbbError
+from dbb_capture.dynamic import rssm as rssm
+from dbb_capture.core.errors import DbbError
 
 # One thread: the CI machine has 2 cores and other tests run beside these.
 torch.set_num_threads(1)

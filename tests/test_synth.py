@@ -13,9 +13,9 @@ import cv2
 import numpy as np
 import pytest
 
-from dbb_capture.board import BoardSpec
-from dbb_capture.cameras import invert_rigid, look_at, opencv_from_opengl
-from dbb_capture.synth import (UP, Renderer, SynthConfig, load_ground_truth, make_scene,
+from dbb_capture.capture.board import BoardSpec
+from dbb_capture.geometry.cameras import invert_rigid, look_at, opencv_from_opengl
+from dbb_capture.synth.scene import (UP, Renderer, SynthConfig, load_ground_truth, make_scene,
                                render_object_rgba, sensor)
 
 
@@ -173,7 +173,7 @@ def test_clean_plate_has_no_object(tiny_static_capture):
 
 def test_worker_processes_render_the_same_capture(tmp_path):
     import av
-    from dbb_capture.synth import write_capture
+    from dbb_capture.synth.scene import write_capture
 
     outs = []
     for workers in (1, 2):

@@ -23,11 +23,11 @@ import cv2
 import numpy as np
 from scipy.special import erf
 
-from .board import BoardSpec
-from .cameras import Intrinsics, invert_rigid, rigid
-from .errors import DbbError
-from .io import FootageSource, blurry_mask, prefetched, sharpness, to_gray8
-from .parallel import map_spawned, report, split
+from ..capture.board import BoardSpec
+from ..geometry.cameras import Intrinsics, invert_rigid, rigid
+from ..core.errors import DbbError
+from ..capture.footage import FootageSource, blurry_mask, prefetched, sharpness, to_gray8
+from ..core.parallel import map_spawned, report, split
 
 
 # --------------------------------------------------------------------------- detection
@@ -1043,7 +1043,7 @@ def detect_sampled(source: FootageSource, board: BoardSpec, fps: float | None = 
 
     Raises :class:`DbbError` when no frame shows the board, naming the dictionary seen instead.
     """
-    from .io import sample_indices
+    from ..capture.footage import sample_indices
 
     idx = sample_indices(source.info.times, fps)
     if total:

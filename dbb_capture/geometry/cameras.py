@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import DbbError
+from ..core.errors import DbbError
 
 # Flips camera y and z: OpenCV camera axes <-> OpenGL camera axes (an involution).
 _FLIP_YZ = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -115,7 +115,7 @@ class Intrinsics:
 
     @classmethod
     def load(cls, path: Path) -> "Intrinsics":
-        from .outputs import read_json
+        from ..core.outputs import read_json
 
         return cls.from_json(read_json(path, "camera file"), str(path))
 

@@ -36,10 +36,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .cameras import Intrinsics, pixel_grid, project_points
-from .crops import CropCamera, crop_camera, cut_crop
-from .errors import DbbError
-from .fields import RowTable
+from ..geometry.cameras import Intrinsics, pixel_grid, project_points
+from ..crops.camera import CropCamera, crop_camera, cut_crop
+from ..core.errors import DbbError
+from ..static.field import RowTable
 
 
 @dataclass(frozen=True)

@@ -27,11 +27,11 @@ import cv2
 import numpy as np
 import torch
 
-from .board import BoardSpec
-from .cameras import Intrinsics, camera_rays, look_at, opengl_from_opencv, pixel_grid
-from .errors import DbbError
-from .outputs import atomic_dir, write_json
-from .progress import progress
+from ..capture.board import BoardSpec
+from ..geometry.cameras import Intrinsics, camera_rays, look_at, opengl_from_opencv, pixel_grid
+from ..core.errors import DbbError
+from ..core.outputs import atomic_dir, write_json
+from ..core.progress import progress
 
 UP = np.array([0.0, 0.0, -1.0])  # board normal on the cameras' side (board face up on a table)
 
@@ -780,7 +780,7 @@ def write_capture(cfg: SynthConfig, out: Path, overwrite: bool = False,
 
 def load_ground_truth(capture: Path) -> tuple[Intrinsics, dict, ObjectModel]:
     """(intrinsics, cameras.json content, object model) of a synthetic capture."""
-    from .outputs import read_json
+    from ..core.outputs import read_json
 
     gt = Path(capture) / "ground_truth"
     return (Intrinsics.load(gt / "camera.json"), read_json(gt / "cameras.json", "ground truth"),

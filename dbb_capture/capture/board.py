@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import DbbError
+from ..core.errors import DbbError
 
 
 def aruco_dictionary_names() -> list[str]:
@@ -60,7 +60,7 @@ class BoardSpec:
 
     @classmethod
     def load(cls, path: Path) -> "BoardSpec":
-        from .outputs import read_json
+        from ..core.outputs import read_json
 
         d = read_json(path, "board file")
         if not isinstance(d, dict):

@@ -22,7 +22,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from .background import (
+from ..background.field import (
     BackgroundConfig,
     BackgroundModel,
     PosedView,
@@ -32,9 +32,9 @@ from .background import (
     train_background,
     training_size,
 )
-from .board import BoardSpec
-from .cameras import Intrinsics, project_points
-from .crops import (
+from ..capture.board import BoardSpec
+from ..geometry.cameras import Intrinsics, project_points
+from ..crops.camera import (
     CropRecord,
     ObjectCrop,
     alpha_in_frame,
@@ -52,8 +52,8 @@ from .crops import (
     vote_neighbours,
     voted_rgba,
 )
-from .errors import DbbError, InputError
-from .formats import (
+from ..core.errors import DbbError, InputError
+from ..poses.export import (
     PosedImage,
     Undistorter,
     plot_camera_path,
@@ -61,11 +61,11 @@ from .formats import (
     write_colmap,
     write_transforms,
 )
-from .io import FootageSource, R3dSource, capture_footage, open_footage
-from .matte import CaptureMatte, MatteConfig, capture_matte, matte, sure_object_counts
-from .outputs import atomic_dir, read_json, write_json
-from .poses import DetectorConfig, PoseConfig, PoseRun, estimate_poses
-from .progress import progress
+from ..capture.footage import FootageSource, R3dSource, capture_footage, open_footage
+from ..crops.matte import CaptureMatte, MatteConfig, capture_matte, matte, sure_object_counts
+from ..core.outputs import atomic_dir, read_json, write_json
+from ..poses.estimate import DetectorConfig, PoseConfig, PoseRun, estimate_poses
+from ..core.progress import progress
 
 
 # --------------------------------------------------------------------------- inputs
@@ -260,8 +260,8 @@ def object_sphere(ctx: StageContext, poses: PosesOutput) -> ObjectSphere:
             raise InputError(f"object.json: radius must be positive (got {radius})")
         source = "object.json"
     else:
-        from .datasets import Frame as DsFrame
-        from .datasets import estimate_volume
+        from ..datasets.records import Frame as DsFrame
+        from ..datasets.records import estimate_volume
 
         vol = estimate_volume([DsFrame(im.file_path, ctx.out / im.file_path, im.c2w, poses.intrinsics)
                                for im in poses.images])
@@ -448,7 +448,7 @@ _MODELS: dict = {}  # background model per path, loaded once per process
 def _crop_segment(seg: _CropSegment, tick: Callable[[int], None] | None = None) -> _FirstPass:
     """First pass over one segment (in this or a spawned process): crop, predict, matte; keeps
     each crop's arrays for the second pass and what the capture's statistics need."""
-    from .parallel import report
+    from ..core.parallel import report
 
     tick = tick or report
     if seg.model not in _MODELS:
@@ -487,7 +487,7 @@ def _load_crop(scratch: Path, fm: _FirstMatte, first_alpha: bool = False) -> tup
 def _matte_segment(seg: _MatteSegment, tick: Callable[[int], None] | None = None) -> list[_CropResult]:
     """Second pass over one segment: matte again with the capture's statistics, take the
     temporal median with the neighbouring frames' alphas, write the crops and masks."""
-    from .parallel import report
+    from ..core.parallel import report
 
     tick = tick or report
     chain = [c for c in (seg.before, *seg.crops, seg.after) if c is not None]
@@ -528,7 +528,7 @@ def _matte_segment(seg: _MatteSegment, tick: Callable[[int], None] | None = None
 def _refine_background(ctx: StageContext, bg: BackgroundOutput, crops: list[_FirstMatte], scratch: Path,
                        prog) -> BackgroundOutput:
     """The object-video field trained again on the first mattes' room rays
-    (:func:`~dbb_capture.background.refine_on_room`); saved over background/field.pt."""
+    (:func:`~dbb_capture.background.field.refine_on_room`); saved over background/field.pt."""
     grow = bg.model.cfg.refine_grow_px
 
     def rays():
@@ -561,7 +561,7 @@ def crops_stage(ctx: StageContext, bg: BackgroundOutput) -> CropsOutput:
     capture's statistics; the second mattes again with them and votes over neighbouring frames.
     With ``workers`` > 1 and 40+ frames, contiguous segments go to spawned processes.
     """
-    from .parallel import map_spawned, split
+    from ..core.parallel import map_spawned, split
 
     inp, cfg, out = ctx.inputs, ctx.cfg, ctx.out
     poses, sphere = bg.poses, bg.sphere
@@ -729,7 +729,7 @@ def fixed_camera_stage(ctx: StageContext, _previous: Any = None) -> CropsOutput:
     option of opaque crops, ``fixed_matte=False``); each frame's window is matted against it. There is no metric pose: every crop shares one nominal camera (identity pose, a
     ``FIXED_HFOV_DEG`` field of view) and so one viewpoint; ``crops.json`` says so.
     """
-    from .crops import CropCamera, viewpoint
+    from ..crops.camera import CropCamera, viewpoint
 
     inp, cfg, out = ctx.inputs, ctx.cfg, ctx.out
     x, y, side = cfg.fixed_window

@@ -22,8 +22,8 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from .cameras import Intrinsics, invert_rigid, look_at
-from .errors import DbbError
+from ..geometry.cameras import Intrinsics, invert_rigid, look_at
+from ..core.errors import DbbError
 
 
 @dataclass(frozen=True)
@@ -233,7 +233,7 @@ class CropRecord:
     background_path: str | None = None
 
     def to_json(self) -> dict:
-        from .cameras import opengl_from_opencv
+        from ..geometry.cameras import opengl_from_opencv
 
         i = self.cam.intr
         d = {"file_path": self.file_path,
@@ -319,7 +319,7 @@ def matte_scale(windows_px: np.ndarray, size: int, between: tuple[float, float])
 
 
 def matte_config_at(cfg, scale: int):
-    """The matte's settings (:class:`~dbb_capture.matte.MatteConfig`) for a crop at ``scale`` x
+    """The matte's settings (:class:`~dbb_capture.crops.matte.MatteConfig`) for a crop at ``scale`` x
     the output size: the fractional band at the outline stays one output pixel wide (at 2x with a
     2-px band, alpha IoU +0.004 to +0.011 over a 1-px band). The other pixel sizes stay as they
     are: the 1-px shift tolerance doubled lost 0.002-0.011."""
@@ -386,7 +386,7 @@ def object_crop(image: np.ndarray, src: Intrinsics, c2w: np.ndarray, center: np.
 
 def rematte(oc: ObjectCrop, fill: float, capture, matte_cfg=None) -> np.ndarray:
     """The matte's second pass over one crop: alpha (S, S) uint8 with the capture's statistics
-    (``capture``: :class:`~dbb_capture.matte.CaptureMatte`), clipped to the frame like the first."""
+    (``capture``: :class:`~dbb_capture.crops.matte.CaptureMatte`), clipped to the frame like the first."""
     from .matte import MatteConfig, matte, sphere_disc
 
     mcfg = matte_config_at(matte_cfg or MatteConfig(), oc.scale)

@@ -9,7 +9,7 @@ Reads the three dataset flavours training accepts:
 - the project's ``crops.json`` (per-frame crop intrinsics, RGBA crops, ``split``).
 
 Poses in the files are OpenGL camera-to-world; every :class:`Frame` holds the OpenCV
-camera-to-world (converted once, by :func:`dbb_capture.cameras.opencv_from_opengl`).
+camera-to-world (converted once, by :func:`dbb_capture.geometry.cameras.opencv_from_opengl`).
 Principal points in the files are read in the project's pixel convention (centre of the
 top-left pixel at (0, 0)), the same convention :meth:`Intrinsics.nerfstudio_fields` writes;
 for Blender files the principal point is the image centre, ``((w - 1) / 2, (h - 1) / 2)``.
@@ -23,9 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .cameras import Intrinsics, camera_rays, opencv_from_opengl, pixel_grid
-from .errors import InputError
-from .outputs import read_json
+from ..geometry.cameras import Intrinsics, camera_rays, opencv_from_opengl, pixel_grid
+from ..core.errors import InputError
+from ..core.outputs import read_json
 
 DATASET_FILES = ("crops.json", "transforms.json", "transforms_train.json")
 _IMAGE_EXTS = ("", ".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
@@ -336,8 +336,8 @@ def holdout_named(frames: list[Frame], names: set[str]) -> list[Frame]:
 def write_transforms(path: Path, frames: list[Frame], volume: ObjectVolume | None = None) -> None:
     """Write ``frames`` as a nerfstudio ``transforms.json`` (per-frame intrinsics, OpenGL
     camera-to-world, ``split``), image paths relative to the file where possible."""
-    from .cameras import opengl_from_opencv
-    from .outputs import write_json
+    from ..geometry.cameras import opengl_from_opencv
+    from ..core.outputs import write_json
 
     path = Path(path)
     out = []

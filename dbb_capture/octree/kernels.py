@@ -21,7 +21,7 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-from .fields import _C0, _C1, _C2, _C3
+from ..static.field import _C0, _C1, _C2, _C3
 
 BRICK_SHIFT = 3      # 8^3 leaves per brick (the leaf table's unit)
 _FAR = 1e30          # 1 / direction component when that component is ~0

@@ -29,8 +29,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .datasets import Frame, ObjectVolume, frame_rays, load_rgb, load_rgba, scaled_intrinsics
-from .errors import DbbError
+from ..datasets.records import Frame, ObjectVolume, frame_rays, load_rgb, load_rgba, scaled_intrinsics
+from ..core.errors import DbbError
 
 COLOUR_ACTIVATION = "sigmoid"   # what the SH sum goes through; recorded in every baked tree
 
@@ -209,7 +209,7 @@ class RowTable:
     def adam_step(self, lr: float, b1: float = 0.9, b2: float = 0.99, eps: float = 1e-8) -> None:
         """One Adam step on the touched rows; their gradient is cleared."""
         if self.data.device.type == "cpu":
-            from .fields_cpu import adam_rows    # numba; imported late (it imports this module)
+            from .kernels import adam_rows    # numba; imported late (it imports this module)
 
             self.t += 1
             step = lr * math.sqrt(1 - b2 ** self.t) / (1 - b1 ** self.t)
@@ -659,7 +659,7 @@ def carve_mask(views: Silhouettes, points: np.ndarray, cell: float, share: float
     a pixel, and holes that fewer views than ``share`` have, keep it."""
     import cv2
 
-    from .cameras import invert_rigid, project_points
+    from ..geometry.cameras import invert_rigid, project_points
 
     seen = np.zeros(len(points), np.int32)
     empty = np.zeros(len(points), np.int32)
@@ -859,7 +859,7 @@ def _cpu_rays(field: VoxelField, origins: torch.Tensor, dirs: torch.Tensor, bg: 
               ray_w: torch.Tensor | None = None) -> np.ndarray:
     """Run the numba kernel (:mod:`.fields_cpu`) on world rays (B, 3); (B, 5) RGB, alpha, sq. error.
     ``ray_w`` (B,): each ray's weight in the gradient (None: 1)."""
-    from .fields_cpu import render_rays_cpu     # numba; imported late (it imports this module)
+    from .kernels import render_rays_cpu     # numba; imported late (it imports this module)
 
     if not field.cpu_kernel:
         raise ValueError("the CPU kernel covers object mode on the CPU only")
@@ -895,7 +895,7 @@ def cpu_photometric_step(field: VoxelField, origins: torch.Tensor, dirs: torch.T
 def cpu_tv_step(field: VoxelField, n: int, gen: torch.Generator) -> tuple[float, float]:
     """:func:`tv_loss` on CPU without autograd: adds ``tv_density`` / ``tv_sh`` times its
     gradient into the field's buffers; returns the two means."""
-    from .fields_cpu import tv_grad
+    from .kernels import tv_grad
 
     if field.n_active == 0:
         return 0.0, 0.0

@@ -24,8 +24,8 @@ import numba
 import numpy as np
 from numba import prange
 
-from .fields import BETA_EPS, RAY_RUN
-from .octree_cpu import _sh_basis
+from .field import BETA_EPS, RAY_RUN
+from ..octree.kernels import _sh_basis
 
 _FM = {"nsz", "arcp", "contract", "afn", "reassoc"}
 _CHUNK = RAY_RUN     # rays per parallel work item: one run of neighbouring pixels (scratch per chunk)

@@ -30,10 +30,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .cameras import Intrinsics
-from .errors import DbbError
-from .fields import COLOUR_ACTIVATION, VoxelField, sh_basis
-from .outputs import write_bytes_atomic
+from ..geometry.cameras import Intrinsics
+from ..core.errors import DbbError
+from ..static.field import COLOUR_ACTIVATION, VoxelField, sh_basis
+from ..core.outputs import write_bytes_atomic
 
 _FORMATS = {1: "SH1", 4: "SH4", 9: "SH9", 16: "SH16"}
 
@@ -256,7 +256,7 @@ def leaf_max_weights(tree: PlenOctree, cameras: Sequence[tuple[np.ndarray, Intri
     Returns the leaves' fine-lattice cells (K, 3) int64, their data rows (K,) int64 and
     their largest weights (K,) float32.
     """
-    from .datasets import scaled_intrinsics
+    from ..datasets.records import scaled_intrinsics
 
     r = TreeRenderer(tree, t_min=floor, w_min=floor, threads=threads, backend="numba")
     cells, rows = r._np["cells"], r._np["rows"]
@@ -481,7 +481,7 @@ class TreeRenderer:
         Ranges of ``_RAY_CHUNK`` rays go to ``self.threads`` threads, each pulling the next
         range when it is done, so a thread that the OS pauses does not hold the frame up.
         """
-        from .octree_cpu import FRAME_MAX, trace_rays
+        from .kernels import FRAME_MAX, trace_rays
 
         n = dirs.shape[0]
         mode = 0 if isinstance(background, str) else (1 if background is None else 2)
@@ -537,7 +537,7 @@ class TreeRenderer:
         order, and each one's pixel (row-major index), cached per intrinsics (undistorting
         every pixel is the dearest part of a small frame). Neighbouring rays meet the same
         leaves, so tiles keep the leaf data they read in cache."""
-        from .cameras import camera_rays, pixel_grid
+        from ..geometry.cameras import camera_rays, pixel_grid
 
         if self._cam_cache[0] != intr:
             H, W, s = intr.height, intr.width, 8
@@ -653,7 +653,7 @@ class TreeRenderer:
                                  None if background is None else tuple(float(v) for v in background),
                                  self._leaf_pixels(c2w, intr) < _EAGER_PIXELS)
             return out.reshape(intr.height, intr.width, -1)
-        from .datasets import frame_rays
+        from ..datasets.records import frame_rays
 
         o, d = frame_rays(intr, c2w)
         H, W = o.shape[:2]

@@ -11,7 +11,7 @@ A bundle is a folder (or the same folder zipped, ``.dbb``) holding:
 - ``model/``: static — ``plenoctree.npz`` (svox ``N3Tree`` npz, copied byte for byte from the
   run); dynamic — ``stepper.ts`` (TorchScript stepper), ``rssm.pt`` (weights and config) and
   ``first_frame.png`` (the straight RGBA context frame, with its viewpoint in the manifest);
-- ``proxy.glb``: the physics proxy (:mod:`dbb_capture.proxy`) in bundle space;
+- ``proxy.glb``: the physics proxy (:mod:`dbb_capture.bundle.proxy`) in bundle space;
 - ``previews/``: ``turntable.gif``, ``sheet.png`` (straight RGBA, several elevations), and for
   dynamic bundles ``rollout.png``.
 
@@ -38,7 +38,7 @@ import cv2
 import numpy as np
 import torch
 
-from .cameras import (
+from ..geometry.cameras import (
     Intrinsics,
     camera_rays,
     invert_rigid,
@@ -46,10 +46,10 @@ from .cameras import (
     opencv_from_opengl,
     pixel_grid,
 )
-from .crops import crop_camera, up_from_cameras, viewpoint
-from .errors import DbbError
-from .outputs import atomic_dir, read_json, write_json
-from .progress import progress
+from ..crops.camera import crop_camera, up_from_cameras, viewpoint
+from ..core.errors import DbbError
+from ..core.outputs import atomic_dir, read_json, write_json
+from ..core.progress import progress
 from .proxy import bundle_from_board, dynamic_proxy, read_glb, static_proxy, write_glb
 
 FORMAT = "deep-billboard"
@@ -262,7 +262,7 @@ def read_cameras(path: Path, T: np.ndarray | None = None) -> list[View]:
     ``T`` (bundle_from_board): when given, the poses are in bundle space and are taken to the
     board frame. Missing intrinsics, poses or names: one clear :class:`DbbError`.
     """
-    from .datasets import (
+    from ..datasets.records import (
         _intrinsics,  # the dataset reader's nerfstudio intrinsics rules
     )
 
@@ -307,7 +307,7 @@ class StaticRenderer:
     """Straight RGBA renders of a static bundle's PlenOctree."""
 
     def __init__(self, tree_path: Path):
-        from .octree import PlenOctree, TreeRenderer
+        from ..octree.render import PlenOctree, TreeRenderer
 
         self.renderer = TreeRenderer(PlenOctree.load(tree_path), _device())
 
@@ -347,7 +347,7 @@ def read_rgba(path: Path) -> np.ndarray:
 
 def _rgba_tensor(rgba_u8: np.ndarray, size: int) -> torch.Tensor:
     """(1, 4, S, S) float straight RGBA from uint8 (H, W, 4), resized on premultiplied colour."""
-    from .rssm import _resize_rgba
+    from ..dynamic.rssm import _resize_rgba
 
     x = _resize_rgba(rgba_u8.astype(np.float32) / 255.0, size)
     return torch.from_numpy(np.ascontiguousarray(x)).permute(2, 0, 1)[None].float()
@@ -374,7 +374,7 @@ class DynamicRenderer:
     def frames(self, views: np.ndarray, first: np.ndarray | None = None,
                first_view: np.ndarray | None = None, seed: int = SEED) -> np.ndarray:
         """Model frames (T, S, S, 4) uint8 for viewpoints (T, 3), one step each after the context."""
-        from .rssm import rollout
+        from ..dynamic.rssm import rollout
 
         torch.manual_seed(seed)
         ctx = _rgba_tensor(self.first if first is None else first, self.size)
@@ -558,7 +558,7 @@ def _dataset_cameras(dataset: Path) -> tuple[list[float], np.ndarray]:
 
     Up is the board normal on the cameras' side: the dataset's recorded "up", else from its poses.
     """
-    from .datasets import find_dataset_file
+    from ..datasets.records import find_dataset_file
 
     src = find_dataset_file(dataset)
     meta = read_json(src, "dataset")
@@ -604,8 +604,8 @@ _RUN_KEYS = {"static": (("tree", "file"), ("density_grid", "file"), ("object", "
 
 def _run_kind(run: Path) -> tuple[str, dict]:
     """"static" or "dynamic" and the run.json of a finished dbb-train run (one clear error if not)."""
-    from .plenoctree import RUN_FORMAT as TREE_FORMAT
-    from .rssm import RUN_FORMAT as RSSM_FORMAT
+    from ..static.run import RUN_FORMAT as TREE_FORMAT
+    from ..dynamic.rssm import RUN_FORMAT as RSSM_FORMAT
 
     if not Path(run).is_dir():
         raise DbbError(f"run folder not found: {run}")
@@ -658,7 +658,7 @@ def build_static(run: Path, meta: dict, tmp: Path, dataset: Path | None, prog) -
 
 
 def build_dynamic(run: Path, meta: dict, tmp: Path, dataset: Path | None, prog) -> Manifest:
-    from .datasets import find_dataset_file, load_dataset, load_rgba
+    from ..datasets.records import find_dataset_file, load_dataset, load_rgba
 
     _need(run, meta["stepper"]["file"], meta["model"]["file"])
     ds_file = find_dataset_file(_run_dataset(meta, run, dataset))
@@ -739,7 +739,7 @@ def verify_bundle(path: Path) -> list[str]:
     """Check a bundle: manifest checksum and schema, every file's size and sha256, no stray
     files, the model loads, the proxy mesh reads with its collision nodes, and a fresh render
     matches the stored preview. Returns what passed; raises :class:`DbbError` at the first failure."""
-    from .fields import psnr
+    from ..static.field import psnr
 
     done = []
     with open_bundle(path) as b:

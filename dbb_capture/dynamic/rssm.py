@@ -48,12 +48,12 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from .crops import sequence_windows
-from .datasets import find_dataset_file, load_dataset, load_rgba
-from .errors import DbbError
-from .outputs import (atomic_dir, check_run_output, read_json, resume_checkpoint, run_work_dir,
+from ..crops.camera import sequence_windows
+from ..datasets.records import find_dataset_file, load_dataset, load_rgba
+from ..core.errors import DbbError
+from ..core.outputs import (atomic_dir, check_run_output, read_json, resume_checkpoint, run_work_dir,
                       training_minutes, write_json)
-from .progress import progress
+from ..core.progress import progress
 
 RUN_FORMAT = "dbb-rssm-run"
 SIZES = (32, 64, 128, 256)
@@ -1409,7 +1409,7 @@ def load_sequences(dataset: Path, size: int = 64) -> SequenceData:
     """Read ``crops.json`` (RGBA crops, per-frame ``viewpoint``, ``split``, ``time``, ``sequences``).
 
     Windows come from the file's ``sequences``; a file without them gets windows from the frame
-    times (:func:`dbb_capture.crops.sequence_windows`, 11 frames).
+    times (:func:`dbb_capture.crops.camera.sequence_windows`, 11 frames).
     """
     src = find_dataset_file(Path(dataset))
     if src.name != "crops.json":
@@ -2344,8 +2344,8 @@ def synthetic_crops(out: Path, seconds: float = 60.0, fps: float = 10.0, size: i
     time is the test split. Also renders ``still_steps`` frames after the first test frame
     at that frame's (now still) viewpoint: the truth of the motion-energy ratio.
     """
-    from .crops import CropRecord, crop_camera, crops_json, split_by_time
-    from .synth import UP, SynthConfig, camera_path, make_scene, render_object_rgba
+    from ..crops.camera import CropRecord, crop_camera, crops_json, split_by_time
+    from ..synth.scene import UP, SynthConfig, camera_path, make_scene, render_object_rgba
 
     cfg = SynthConfig(kind="dynamic", seconds=seconds, fps=fps, seed=seed, background_seconds=None)
     rng = np.random.default_rng(seed)

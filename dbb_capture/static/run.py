@@ -29,15 +29,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .datasets import (Frame, ObjectVolume, PosedDataset, estimate_volume, holdout_every,
+from ..datasets.records import (Frame, ObjectVolume, PosedDataset, estimate_volume, holdout_every,
                        holdout_named, load_dataset, scaled_intrinsics)
-from .errors import DbbError
-from .fields import (COLOUR_ACTIVATION, Budget, FieldConfig, TrainState, VoxelField, build_ray_bank, frame_tensors,
+from ..core.errors import DbbError
+from .field import (COLOUR_ACTIVATION, Budget, FieldConfig, TrainState, VoxelField, build_ray_bank, frame_tensors,
                      lattice_for_views, new_field, pick_device, psnr, render_image, train)
-from .octree import PRUNE_WEIGHT, PlenOctree, TreeRenderer, bake
-from .outputs import (atomic_dir, check_run_output, read_json, resume_checkpoint, run_work_dir,
+from ..octree.render import PRUNE_WEIGHT, PlenOctree, TreeRenderer, bake
+from ..core.outputs import (atomic_dir, check_run_output, read_json, resume_checkpoint, run_work_dir,
                       training_minutes, write_json)
-from .progress import progress
+from ..core.progress import progress
 
 RUN_FORMAT = "dbb-plenoctree-run"
 
@@ -213,7 +213,7 @@ def write_density_grid(field: VoxelField, path: Path, max_res: int = 256) -> Non
            "units": np.array("per world unit")}
     import io
 
-    from .outputs import write_bytes_atomic
+    from ..core.outputs import write_bytes_atomic
     b = io.BytesIO()
     np.savez_compressed(b, **buf)
     write_bytes_atomic(path, b.getvalue())

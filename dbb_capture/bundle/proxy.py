@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import DbbError
+from ..core.errors import DbbError
 
 MAX_TRIANGLES = 5000
 
@@ -207,7 +207,7 @@ def _view_spread_deg(dirs: np.ndarray) -> float:
 def _project(P: np.ndarray, c2w: np.ndarray, intr) -> np.ndarray:
     """Pixels (N, 2) of board points (N, 3): plain pinhole maths for undistorted crop cameras
     (cv2.projectPoints is ~10x slower on a voxel grid), the lens model otherwise."""
-    from .cameras import invert_rigid, project_points
+    from ..geometry.cameras import invert_rigid, project_points
 
     if intr.distorted:
         return project_points(P, c2w, intr)
@@ -226,7 +226,7 @@ def dynamic_proxy(crops_json: Path, center: np.ndarray, radius: float, T: np.nda
     matte (alpha > 0.5) in at least ``agree`` of the views that see it; a moving object thus
     keeps what it occupies most of the time.
     """
-    from .datasets import load_dataset, load_rgba
+    from ..datasets.records import load_dataset, load_rgba
 
     center = np.asarray(center, float)
     try:
@@ -281,7 +281,7 @@ def write_glb(path: Path, proxy: ProxyMesh, name: str = "proxy") -> None:
     """One ``.glb`` with nodes ``<name>-colonly`` (mesh) and ``<name>-convcolonly`` (convex hull)."""
     import trimesh
 
-    from .outputs import write_bytes_atomic
+    from ..core.outputs import write_bytes_atomic
 
     scene = trimesh.Scene()
     scene.add_geometry(_trimesh(proxy.vertices, proxy.faces), node_name=f"{name}-colonly",

@@ -2,7 +2,7 @@
 (pycolmap) and the pose report (JSON and a PNG of the camera path around the board).
 
 Poses come in as OpenCV camera-to-world (board frame, metres); the OpenGL conversion for
-``transforms.json`` goes through :func:`dbb_capture.cameras.opengl_from_opencv` and COLMAP's
+``transforms.json`` goes through :func:`dbb_capture.geometry.cameras.opengl_from_opencv` and COLMAP's
 pixel convention (top-left pixel centre at (0.5, 0.5)) is applied here, at the file boundary.
 """
 
@@ -15,10 +15,10 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from .board import BoardSpec
-from .cameras import Intrinsics, invert_rigid, opengl_from_opencv
-from .outputs import write_json
-from .poses import PoseRun
+from ..capture.board import BoardSpec
+from ..geometry.cameras import Intrinsics, invert_rigid, opengl_from_opencv
+from ..core.outputs import write_json
+from .estimate import PoseRun
 
 
 @dataclass(frozen=True)
