@@ -26,9 +26,9 @@ import numpy as np
 import torch
 
 from dbb_capture.bundle import build as B
-from dbb_capture.geometry.cameras import opengl_from_opencv
+from dbb_capture.geometry.conventions import opengl_from_opencv
 from dbb_capture.core.errors import DbbError
-from dbb_capture.static.field import psnr
+from dbb_capture.core.metrics import psnr_from_mse
 from dbb_capture.bundle.proxy import read_glb, transform_points
 from common import emit  # bench/ is the script folder: on sys.path
 
@@ -117,9 +117,9 @@ def bench_static(run: Path, out: Path, capture: Path | None, seed: int, res: int
         got = B.read_rgba(out / "renders" / f"{f.name}.png").astype(np.float32) / 255
         got_w = got[..., :3] * got[..., 3:] + 1 - got[..., 3:]
         run_img = ref.render(f.c2w, f.intr, (1.0, 1.0, 1.0))
-        rows.append({"bundle": psnr(float(((got_w - gt_w) ** 2).mean())),
-                     "run": psnr(float(((run_img - gt_w) ** 2).mean())),
-                     "bundle_vs_run": psnr(float(((got_w - run_img) ** 2).mean()))})
+        rows.append({"bundle": psnr_from_mse(float(((got_w - gt_w) ** 2).mean())),
+                     "run": psnr_from_mse(float(((run_img - gt_w) ** 2).mean())),
+                     "bundle_vs_run": psnr_from_mse(float(((got_w - run_img) ** 2).mean()))})
     t = time.perf_counter()
     checks = B.verify_bundle(out / "bundle")
     verify_s = time.perf_counter() - t
@@ -184,7 +184,7 @@ def bench_dynamic(run: Path, out: Path, seed: int | None, res: int) -> dict:
         for k, v in enumerate(views):
             got = B.read_rgba(out / "renders" / v.name).astype(np.float32) / 255
             want = r.warp(ref[k], v).astype(np.float32) / 255
-            rows.append(psnr(float(((got - want) ** 2).mean())))
+            rows.append(psnr_from_mse(float(((got - want) ** 2).mean())))
     t = time.perf_counter()
     checks = B.verify_bundle(out / "bundle")
     verify_s = time.perf_counter() - t

@@ -30,9 +30,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dbb_capture.geometry.cameras import Intrinsics, look_at
-from dbb_capture.datasets.records import Frame, ObjectVolume, load_dataset, scaled_intrinsics, write_transforms
-from dbb_capture.static.field import TrainState, frame_tensors, psnr, render_image
+from dbb_capture.geometry.cameras import Intrinsics
+from dbb_capture.geometry.transforms import look_at
+from dbb_capture.datasets.records import Frame, ObjectVolume, load_dataset, write_transforms
+from dbb_capture.geometry.cameras import scaled_intrinsics
+from dbb_capture.static.field import TrainState, frame_tensors, render_image
+from dbb_capture.core.metrics import psnr_from_mse
 from dbb_capture.octree.render import TreeRenderer
 from dbb_capture.static.run import RunConfig, evaluate_views, load_run, mean_of, split_frames, train_run
 from common import emit  # bench/ is the script folder: on sys.path
@@ -94,7 +97,7 @@ def bench_fox(run_dir: Path) -> dict:
     for f in test:
         o, d, rgba = frame_tensors(f, run.meta["training"]["downscale"])
         img = render_image(st.field, torch.from_numpy(o), torch.from_numpy(d), (0.0, 0.0, 0.0))
-        ps.append(psnr(float(((img - rgba[..., :3]) ** 2).mean())))
+        ps.append(psnr_from_mse(float(((img - rgba[..., :3]) ** 2).mean())))
     return {"run": str(run_dir), "train_minutes": run.meta["training"]["seconds"] / 60,
             "steps": run.meta["training"]["steps"], "heldout_views": len(test),
             "psnr_heldout_field": float(np.mean(ps)), "per_view": dict(zip([f.name for f in test], ps)),
@@ -178,7 +181,7 @@ def footage_ceiling(capture: Path, size: int = 128, fill: float = 0.9, test_frac
     on black and white, for the crops of the time split's test part, the every-n-th crops and all."""
     import cv2
 
-    from dbb_capture.geometry.cameras import opencv_from_opengl
+    from dbb_capture.geometry.conventions import opencv_from_opengl
     from dbb_capture.crops.camera import crop_camera, cut_crop, split_by_time
     from dbb_capture.capture.footage import capture_footage
     from dbb_capture.crops.matte import straight_rgba
@@ -318,7 +321,7 @@ def psnr_on_backgrounds(rgba: np.ndarray, gt: np.ndarray) -> dict[str, float]:
     for key, bg in (("black", 0.0), ("white", 1.0)):
         t = gt[..., :3] * gt[..., 3:] + (1 - gt[..., 3:]) * bg
         m = rgba[..., :3] * rgba[..., 3:] + (1 - rgba[..., 3:]) * bg
-        out[key] = psnr(float(((m - t) ** 2).mean()))
+        out[key] = psnr_from_mse(float(((m - t) ** 2).mean()))
     return out
 
 
@@ -389,9 +392,9 @@ def bench_capture(dataset: Path, capture: Path, run_dir: Path, minutes: float | 
             b = np.asarray(bg, np.float32)
             truth_img = gt[..., :3] * gt[..., 3:] + (1 - gt[..., 3:]) * b
             mat = crop[..., :3] * crop[..., 3:] + (1 - crop[..., 3:]) * b
-            row[f"psnr_truth_{key}"] = psnr(float(((img - truth_img) ** 2).mean()))
-            row[f"psnr_crop_{key}"] = psnr(float(((img - mat) ** 2).mean()))
-            row[f"psnr_crop_vs_truth_{key}"] = psnr(float(((mat - truth_img) ** 2).mean()))
+            row[f"psnr_truth_{key}"] = psnr_from_mse(float(((img - truth_img) ** 2).mean()))
+            row[f"psnr_crop_{key}"] = psnr_from_mse(float(((img - mat) ** 2).mean()))
+            row[f"psnr_crop_vs_truth_{key}"] = psnr_from_mse(float(((mat - truth_img) ** 2).mean()))
         rows.append(row)
         parts.append(error_parts(r.render(f.c2w, f.intr), gt))
         crop_parts.append(error_parts(crop, gt))

@@ -38,9 +38,11 @@ from pathlib import Path
 import numpy as np
 
 from dbb_capture.capture.board import BoardSpec
-from dbb_capture.geometry.cameras import opencv_from_opengl
+from dbb_capture.geometry.conventions import opencv_from_opengl
 from dbb_capture.capture.footage import VideoSource, open_footage
-from dbb_capture.poses.estimate import DetectorConfig, PoseConfig, estimate_poses
+from dbb_capture.poses.detect import DetectorConfig
+from dbb_capture.poses.solve import PoseConfig
+from dbb_capture.poses.run import estimate_poses
 
 # dbb_capture.synth.scene (and torch with it) is imported inside the functions that render: spawned
 # pose workers re-import this main module, and torch would cost each of them seconds to load.
@@ -221,7 +223,7 @@ def speed(work: Path, seconds: float, repeats: int) -> None:
 def calibration(work: Path) -> None:
     """`dbb-capture calibrate` on the accuracy captures (rendered by ``accuracy``): OpenCV's
     calibration (the default) against ``--precise``, errors against the true intrinsics."""
-    from dbb_capture.poses.estimate import calibrate_footage
+    from dbb_capture.poses.calibrate import calibrate_footage
     from dbb_capture.synth.scene import load_ground_truth
 
     print("| capture | default: fx / fy err, cx / cy err (px), RMS px | `--precise`: same |")

@@ -52,14 +52,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from dbb_capture.geometry.cameras import Intrinsics, camera_rays, opencv_from_opengl, project_points
+from dbb_capture.geometry.cameras import Intrinsics, project_points
+from dbb_capture.geometry.rays import camera_rays
+from dbb_capture.geometry.conventions import opencv_from_opengl
 from dbb_capture.crops.camera import crop_maps, cut_crop
 
 REPO = Path(__file__).resolve().parents[1]
 
 
 def _cam_from_frame(fr: dict):
-    from dbb_capture.crops.camera import CropCamera, Viewpoint
+    from dbb_capture.crops.camera import CropCamera
+    from dbb_capture.geometry.viewpoint import Viewpoint
 
     intr = Intrinsics(fr["w"], fr["h"], fr["fl_x"], fr["fl_y"], fr["cx"], fr["cy"])
     vp = Viewpoint(**fr["viewpoint"])
@@ -346,10 +349,13 @@ def quality(work: Path, captures: list[Path], minutes: float, rescore: bool = Fa
 def speed(work: Path, minutes: float) -> None:
     from dbb_capture.background.field import BackgroundModel
     from dbb_capture.capture.board import BoardSpec
-    from dbb_capture.crops.camera import at_output, object_crop, rematte, up_from_cameras, voted_rgba
+    from dbb_capture.crops.camera import at_output, object_crop, rematte, voted_rgba
+    from dbb_capture.geometry.viewpoint import up_from_cameras
     from dbb_capture.crops.matte import capture_matte
     from dbb_capture.capture.footage import open_footage
-    from dbb_capture.poses.estimate import DetectorConfig, detect_frames, fuse_with_path, pose_frames
+    from dbb_capture.poses.detect import DetectorConfig, detect_frames
+    from dbb_capture.poses.path import fuse_with_path
+    from dbb_capture.poses.solve import pose_frames
 
     cap = work / "hd"
     if not (cap / "video.mp4").is_file():

@@ -27,8 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
-from dbb_capture.geometry.cameras import Intrinsics, look_at
-from dbb_capture.datasets.records import load_dataset, scaled_intrinsics
+from dbb_capture.geometry.cameras import Intrinsics
+from dbb_capture.geometry.transforms import look_at
+from dbb_capture.datasets.records import load_dataset
+from dbb_capture.geometry.cameras import scaled_intrinsics
 from dbb_capture.octree.render import PRUNE_WEIGHT, PlenOctree, TreeRenderer, build_tree
 from dbb_capture.static.run import RunConfig, evaluate_views, load_run, mean_of, split_frames
 from common import emit  # bench/ is the script folder: on sys.path

@@ -74,7 +74,8 @@ def still_truth(dataset: Path, capture: Path, steps: int = 150, samples: int = 2
     the truth is the capture's ground-truth object rendered through that frame's crop camera
     (preprocess poses are in the board frame, as the synthetic world) for ``steps`` more frames.
     """
-    from dbb_capture.geometry.cameras import Intrinsics, opencv_from_opengl
+    from dbb_capture.geometry.cameras import Intrinsics
+    from dbb_capture.geometry.conventions import opencv_from_opengl
     from dbb_capture.synth.scene import load_ground_truth, render_object_rgba
 
     doc = json.loads((Path(dataset) / "crops.json").read_text())

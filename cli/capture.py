@@ -130,7 +130,7 @@ def calibrate(input_path: Path, board_path: Path | None, output: Path, fps: floa
     from dbb_capture.core.errors import DbbError
     from dbb_capture.capture.footage import open_footage
     from dbb_capture.core.outputs import write_json
-    from dbb_capture.poses.estimate import calibrate_footage
+    from dbb_capture.poses.calibrate import calibrate_footage
     from dbb_capture.core.progress import progress
 
     if output.exists() and not overwrite:

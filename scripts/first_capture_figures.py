@@ -43,7 +43,7 @@ def _u8(rgb: np.ndarray) -> np.ndarray:
 
 
 def figures(out: Path, bundle: Path | None) -> list[Path]:
-    from dbb_capture.geometry.cameras import look_at
+    from dbb_capture.geometry.transforms import look_at
     from dbb_capture.synth.scene import UP, Renderer, SynthConfig, camera_path, make_scene
 
     out.mkdir(parents=True, exist_ok=True)

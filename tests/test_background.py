@@ -11,12 +11,16 @@ import torch
 from click.testing import CliRunner
 
 from dbb_capture.background.field import (BackgroundConfig, LayerField, PosedView, RayBank, new_field, parallax_coverage,
-                                    pinhole_rays, train_background, training_size)
-from dbb_capture.geometry.cameras import Intrinsics, look_at, opencv_from_opengl, project_points
+                                    train_background, training_size)
+from dbb_capture.geometry.cameras import Intrinsics, project_points
+from dbb_capture.geometry.transforms import look_at
+from dbb_capture.geometry.conventions import opencv_from_opengl
 from dbb_capture.cli.capture import main
-from dbb_capture.crops.camera import crop_camera, crop_maps, object_crop, up_from_cameras
+from dbb_capture.crops.camera import crop_camera, crop_maps, object_crop
+from dbb_capture.geometry.viewpoint import up_from_cameras
 from dbb_capture.capture.footage import open_footage
 from dbb_capture.synth.scene import SynthConfig, load_ground_truth, write_capture
+from dbb_capture.geometry.rays import pixel_rays
 
 UP = np.array([0.0, 0.0, -1.0])
 
@@ -34,7 +38,7 @@ def test_fast_render_equals_volume_rendering():
     """The cv2 path used at preprocess time gives the image the training renderer gives."""
     center = np.array([0.3, 0.2, -0.08])
     c2ws = _ring(center)
-    o, d = pinhole_rays(crop_camera(c2ws[0], _intr(), center, 0.1, UP, 32, 0.6).intr, c2ws[0])
+    o, d = [a.reshape(-1, 3) for a in pixel_rays(crop_camera(c2ws[0], _intr(), center, 0.1, UP, 32, 0.6).intr, c2ws[0], np.float64)]
     bank = RayBank(torch.from_numpy(o).float(), torch.from_numpy(d).float(), torch.rand(len(o), 3))
     fld = new_field(BackgroundConfig(layers=8), center, 0.1, UP, c2ws, bank, 64)
     g = torch.Generator().manual_seed(0)
@@ -42,7 +46,7 @@ def test_fast_render_equals_volume_rendering():
                      fld.basis, fld.heights, fld.half, fld.r_out)
     cam = crop_camera(c2ws[3], _intr(), center, 0.1, UP, 48, 0.7)
     fast = fld.render(cam).astype(float)
-    o, d = pinhole_rays(cam.intr, cam.c2w)
+    o, d = [a.reshape(-1, 3) for a in pixel_rays(cam.intr, cam.c2w, np.float64)]
     with torch.no_grad():
         slow = fld.composite(torch.from_numpy(o).float(), torch.from_numpy(d).float()).numpy()
     slow = np.round(np.clip(slow, 0, 1) * 255).reshape(fast.shape)
@@ -150,7 +154,7 @@ def test_video_room_fills_in_where_the_plate_was_not_filmed(plate_capture):
 def test_field_state_keeps_where_the_board_plane_is_a_guess(tmp_path):
     center = np.array([0.3, 0.2, -0.08])
     c2ws = _ring(center)
-    o, d = pinhole_rays(crop_camera(c2ws[0], _intr(), center, 0.1, UP, 32, 0.6).intr, c2ws[0])
+    o, d = [a.reshape(-1, 3) for a in pixel_rays(crop_camera(c2ws[0], _intr(), center, 0.1, UP, 32, 0.6).intr, c2ws[0], np.float64)]
     bank = RayBank(torch.from_numpy(o).float(), torch.from_numpy(d).float(), torch.rand(len(o), 3))
     fld = new_field(BackgroundConfig(layers=8), center, 0.1, UP, c2ws, bank, 64)
     guess = torch.zeros(64, 64)
@@ -315,7 +319,7 @@ def _wall_bank(center, radius_wall=2.5, n_views=16, size=40):
         cam = look_at(eye, target, UP)
         from dbb_capture.geometry.cameras import Intrinsics
 
-        o, d = pinhole_rays(Intrinsics(size, size, 60.0, 60.0, (size - 1) / 2, (size - 1) / 2), cam)
+        o, d = [a.reshape(-1, 3) for a in pixel_rays(Intrinsics(size, size, 60.0, 60.0, (size - 1) / 2, (size - 1) / 2), cam, np.float64)]
         oc = o - center
         b = (oc * d).sum(1)
         t = -b + np.sqrt(b * b - (oc * oc).sum(1) + radius_wall ** 2)

@@ -120,7 +120,7 @@ def test_zip_bundle_verifies_and_a_damaged_zip_does_not(static_run, tmp_path):
 
 
 def _cameras(frames, path, per_frame=False, drop_intrinsics=False):
-    from dbb_capture.geometry.cameras import opengl_from_opencv
+    from dbb_capture.geometry.conventions import opengl_from_opencv
 
     doc = {"frames": [{"file_path": f"images/{f.name}.jpg",
                        "transform_matrix": opengl_from_opencv(f.c2w).tolist()} for f in frames]}
@@ -156,7 +156,7 @@ def test_render_equals_the_runs_tree_and_reads_both_intrinsic_layouts(static_run
 
 
 def test_render_in_bundle_space_matches_board_space(static_bundle, static_run, tmp_path):
-    from dbb_capture.geometry.cameras import opencv_from_opengl, opengl_from_opencv
+    from dbb_capture.geometry.conventions import opencv_from_opengl, opengl_from_opencv
 
     _, frames = static_run
     T = np.asarray(json.loads((static_bundle / "manifest.json").read_text())["bundle_from_board"])
@@ -265,7 +265,7 @@ def test_dynamic_proxy_falls_back_to_a_sphere_and_says_why(dynamic_run, tmp_path
 
 
 def test_preview_orbit_agrees_with_the_viewpoint_convention():
-    from dbb_capture.crops.camera import viewpoint
+    from dbb_capture.geometry.viewpoint import viewpoint
     from dbb_capture.bundle.proxy import bundle_from_board
 
     c = np.array([0.4, 0.1, -0.09])

@@ -14,10 +14,13 @@ from click.testing import CliRunner
 
 from conftest import shared_data
 from dbb_capture.capture.board import BoardSpec
-from dbb_capture.geometry.cameras import Intrinsics, look_at, project_points
+from dbb_capture.geometry.cameras import Intrinsics, project_points
+from dbb_capture.geometry.transforms import look_at
 from dbb_capture.cli.capture import main
 from dbb_capture.capture.footage import Frame
-from dbb_capture.poses.estimate import Detection, calibrate, detect_frames, pose_frames
+from dbb_capture.poses.detect import Detection, detect_frames
+from dbb_capture.poses.calibrate import calibrate
+from dbb_capture.poses.solve import pose_frames
 
 REAL_BOARD = {"squares_x": 5, "squares_y": 7, "square_length": 0.04, "marker_length": 0.02,
               "dictionary": "DICT_6X6_250"}

@@ -2,8 +2,10 @@
 
 import numpy as np
 
-from dbb_capture.geometry.cameras import (Intrinsics, camera_rays, invert_rigid, look_at,
-                                 opencv_from_opengl, opengl_from_opencv, pixel_grid, project_points)
+from dbb_capture.geometry.cameras import Intrinsics, project_points
+from dbb_capture.geometry.rays import camera_rays, pixel_grid
+from dbb_capture.geometry.transforms import invert_rigid, look_at
+from dbb_capture.geometry.conventions import opencv_from_opengl, opengl_from_opencv
 
 
 def test_opengl_opencv_round_trip_and_axes():

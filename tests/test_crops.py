@@ -7,9 +7,21 @@ import math
 import numpy as np
 import pytest
 
-from dbb_capture.geometry.cameras import Intrinsics, look_at, project_points
-from dbb_capture.crops.camera import (at_output, crop_camera, crop_maps, cut_crop, follows_previous, matte_scale, object_crop,
-                               premultiplied_down, sequence_windows, split_by_time, up_from_cameras, viewpoint)
+from dbb_capture.geometry.cameras import Intrinsics, project_points
+from dbb_capture.geometry.transforms import look_at
+from dbb_capture.crops.camera import (
+    at_output,
+    crop_camera,
+    crop_maps,
+    cut_crop,
+    follows_previous,
+    matte_scale,
+    object_crop,
+    premultiplied_down,
+    sequence_windows,
+    split_by_time,
+)
+from dbb_capture.geometry.viewpoint import up_from_cameras, viewpoint
 from dbb_capture.synth.scene import SynthConfig, make_scene, render_object_rgba
 
 UP = np.array([0.0, 0.0, -1.0])

@@ -10,9 +10,20 @@ import numpy as np
 import pytest
 from conftest import shared_data
 
-from dbb_capture.geometry.cameras import Intrinsics, look_at, opengl_from_opencv, project_points
-from dbb_capture.datasets.records import (Frame, ObjectVolume, estimate_volume, frame_rays, holdout_every,
-                                  load_dataset, load_rgba, scaled_intrinsics, write_transforms)
+from dbb_capture.geometry.cameras import Intrinsics, project_points
+from dbb_capture.geometry.transforms import look_at
+from dbb_capture.geometry.conventions import opengl_from_opencv
+from dbb_capture.datasets.records import (
+    Frame,
+    ObjectVolume,
+    estimate_volume,
+    holdout_every,
+    load_dataset,
+    load_rgba,
+    write_transforms,
+)
+from dbb_capture.geometry.rays import pixel_rays
+from dbb_capture.geometry.cameras import scaled_intrinsics
 from dbb_capture.core.errors import DbbError
 
 INTR = Intrinsics(40, 30, 50.0, 52.0, 19.3, 14.6, (0.05, -0.02, 0.001, -0.002, 0.0))
@@ -91,12 +102,12 @@ def test_rays_pass_through_projected_points_with_distortion():
     c2w = _poses(1)[0]
     pts = np.random.default_rng(0).uniform(-0.2, 0.2, (20, 3))
     uv = project_points(pts, c2w, INTR)
-    o, d = frame_rays(INTR, c2w)
+    o, d = pixel_rays(INTR, c2w)
     # Bilinear look-up of the ray direction at the projected pixel must point at the point.
     for p, (u, v) in zip(pts, uv):
         if not (0 <= u < INTR.width - 1 and 0 <= v < INTR.height - 1):
             continue
-        from dbb_capture.geometry.cameras import camera_rays
+        from dbb_capture.geometry.rays import camera_rays
         dc = camera_rays(INTR, np.array([[u, v]]))[0]
         dw = c2w[:3, :3] @ dc
         want = (p - c2w[:3, 3]) / np.linalg.norm(p - c2w[:3, 3])

@@ -11,10 +11,25 @@ import pytest
 import torch
 
 from dbb_capture.capture.board import BoardSpec
-from dbb_capture.geometry.cameras import Intrinsics, look_at, opengl_from_opencv
+from dbb_capture.geometry.cameras import Intrinsics
+from dbb_capture.geometry.transforms import look_at
+from dbb_capture.geometry.conventions import opengl_from_opencv
 from dbb_capture.datasets.records import Frame, ObjectVolume
-from dbb_capture.static.field import (Budget, FieldConfig, TrainState, build_ray_bank, contract, frame_tensors,
-                                lattice_for_views, new_field, psnr, render_image, sh_basis, stage_resolutions, train)
+from dbb_capture.static.field import (
+    Budget,
+    FieldConfig,
+    TrainState,
+    build_ray_bank,
+    contract,
+    frame_tensors,
+    lattice_for_views,
+    new_field,
+    render_image,
+    stage_resolutions,
+    train,
+)
+from dbb_capture.core.metrics import psnr_from_mse
+from dbb_capture.geometry.sh import sh_basis
 
 
 def synthetic_object_frames(folder, n=24, size=32, seed=0):
@@ -63,7 +78,7 @@ def _view_psnr(field, frame, bg):
     o, d, rgba = frame_tensors(frame, 1)
     img = render_image(field, torch.from_numpy(o), torch.from_numpy(d), bg)
     gt = rgba[..., :3] * rgba[..., 3:] + (1 - rgba[..., 3:]) * np.asarray(bg, np.float32)
-    return psnr(float(((img - gt) ** 2).mean())), img, rgba
+    return psnr_from_mse(float(((img - gt) ** 2).mean())), img, rgba
 
 
 def test_sh_basis_is_orthonormal():
@@ -140,7 +155,7 @@ def test_final_steps_fine_tune_what_the_tree_renders(trained):
     f = frames[3]
     _, img_field, _ = _view_psnr(state.field, f, (1.0, 1.0, 1.0))
     img_tree = rend.render(f.c2w, f.intr, (1.0, 1.0, 1.0))
-    assert psnr(float(((img_field - img_tree) ** 2).mean())) > 31
+    assert psnr_from_mse(float(((img_field - img_tree) ** 2).mean())) > 31
 
 
 def test_scene_mode_fits_an_opaque_rgb_view(tmp_path):

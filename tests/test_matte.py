@@ -27,7 +27,7 @@ from dbb_capture.crops.matte import (
     temporal_median,
 )
 from dbb_capture.synth.scene import UP, Renderer, SynthConfig, make_scene, render_object_rgba, sensor
-from dbb_capture.geometry.cameras import look_at
+from dbb_capture.geometry.transforms import look_at
 
 
 @pytest.fixture(scope="module")

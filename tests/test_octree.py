@@ -10,8 +10,17 @@ import torch
 from click.testing import CliRunner
 
 from dbb_capture.datasets.records import write_transforms
-from dbb_capture.static.field import (Budget, FieldConfig, TrainState, build_ray_bank, frame_tensors, new_field,
-                                psnr, render_image, train)
+from dbb_capture.static.field import (
+    Budget,
+    FieldConfig,
+    TrainState,
+    build_ray_bank,
+    frame_tensors,
+    new_field,
+    render_image,
+    train,
+)
+from dbb_capture.core.metrics import psnr_from_mse
 from dbb_capture.octree.render import PlenOctree, TreeRenderer, bake, build_tree, leaf_cells
 
 
@@ -115,7 +124,7 @@ def test_tree_renders_like_the_field(baked):
     o, d, _ = frame_tensors(f, 1)
     field_img = render_image(state.field, torch.from_numpy(o), torch.from_numpy(d), (1.0, 1.0, 1.0))
     tree_img = r.render(f.c2w, f.intr, (1.0, 1.0, 1.0))
-    assert psnr(float(((field_img - tree_img) ** 2).mean())) > 28
+    assert psnr_from_mse(float(((field_img - tree_img) ** 2).mean())) > 28
     rgba = r.render(f.c2w, f.intr)
     assert rgba.shape == (24, 24, 4) and 0.05 < rgba[..., 3].mean() < 0.9
 
@@ -194,7 +203,7 @@ def test_cpu_kernel_matches_a_dense_torch_reference():
     rgb_r, a_r = ref.render_rays(o, d)
     assert float(a_f.mean()) > 0.2 and float(a_f[-2:].min()) > 0.5
     mse = float(torch.cat([rgb_f - rgb_r, (a_f - a_r)[:, None]], 1).pow(2).mean())
-    assert psnr(mse) > 40
+    assert psnr_from_mse(mse) > 40
 
 
 def test_cpu_renderer_matches_the_torch_renderer_on_a_trained_tree(baked):
@@ -203,8 +212,8 @@ def test_cpu_renderer_matches_the_torch_renderer_on_a_trained_tree(baked):
     fast = TreeRenderer(tree).render(f.c2w, f.intr)
     ref = TreeRenderer(tree, backend="torch", step=1 / 8).render(f.c2w, f.intr)
     assert fast.shape == ref.shape == (24, 24, 4)
-    assert psnr(float(((fast[..., :3] * fast[..., 3:] - ref[..., :3] * ref[..., 3:]) ** 2).mean())) > 40
-    assert psnr(float(((fast[..., 3] - ref[..., 3]) ** 2).mean())) > 40
+    assert psnr_from_mse(float(((fast[..., :3] * fast[..., 3:] - ref[..., :3] * ref[..., 3:]) ** 2).mean())) > 40
+    assert psnr_from_mse(float(((fast[..., 3] - ref[..., 3]) ** 2).mean())) > 40
 
 
 def test_float16_decoding_is_exact():
@@ -240,7 +249,7 @@ def test_threads_and_prefetch_mode_do_not_change_pixels(baked, monkeypatch):
     """Threads share one colour cache and the eager prefetch only reorders memory traffic:
     a frame is the same bit for bit with one thread or several, eager or not."""
     import dbb_capture.octree.render as octree
-    from dbb_capture.datasets.records import scaled_intrinsics
+    from dbb_capture.geometry.cameras import scaled_intrinsics
 
     frames, vol, state, tree, _ = baked
     intr = scaled_intrinsics(frames[2].intr, 24 / 160)        # 160x160: several work items
@@ -263,7 +272,7 @@ def test_renderer_works_in_a_forked_child_after_the_parent_rendered(baked):
     """The render threads do not survive fork; a child must not wait on its parent's pool."""
     import multiprocessing as mp
 
-    from dbb_capture.datasets.records import scaled_intrinsics
+    from dbb_capture.geometry.cameras import scaled_intrinsics
 
     frames, vol, state, tree, _ = baked
     intr = scaled_intrinsics(frames[1].intr, 0.25)            # 96x96: more rays than one work item
@@ -293,7 +302,8 @@ def _wall_tree() -> tuple[PlenOctree, dict[str, tuple[int, int, int]]]:
 
 
 def test_weight_pruning_drops_hidden_and_faint_leaves_and_keeps_the_visible_ones():
-    from dbb_capture.geometry.cameras import Intrinsics, look_at
+    from dbb_capture.geometry.cameras import Intrinsics
+    from dbb_capture.geometry.transforms import look_at
     from dbb_capture.octree.render import leaf_max_weights, prune_by_weight
 
     tree, named = _wall_tree()
@@ -324,7 +334,7 @@ def test_bake_with_training_cameras_prunes_without_changing_the_views(baked):
     a, b = TreeRenderer(tree), TreeRenderer(pruned)
     for f in frames[:4]:
         diff = a.render(f.c2w, f.intr, (1.0, 1.0, 1.0)) - b.render(f.c2w, f.intr, (1.0, 1.0, 1.0))
-        assert psnr(float((diff ** 2).mean())) > 30
+        assert psnr_from_mse(float((diff ** 2).mean())) > 30
 
 
 def test_a_tree_finer_than_the_lattice_skips_the_nearest_lookup_phase():

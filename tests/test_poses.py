@@ -16,13 +16,22 @@ import pytest
 from click.testing import CliRunner
 
 from dbb_capture.capture.board import BoardSpec
-from dbb_capture.geometry.cameras import look_at, opencv_from_opengl, project_points
+from dbb_capture.geometry.transforms import look_at
+from dbb_capture.geometry.conventions import opencv_from_opengl
+from dbb_capture.geometry.cameras import project_points
 from dbb_capture.cli.capture import main
 from dbb_capture.core.errors import DbbError
 from dbb_capture.capture.footage import Frame
-from dbb_capture.poses.estimate import (BoardDetector, Detection, DetectorConfig, FramePose, PoseConfig,
-                               detect_frames, diagnose_no_board, fuse_with_path, pose_frames, refine_jointly,
-                               refine_saddles, refine_xjunctions, reject_outliers, solve_pose)
+from dbb_capture.poses.detect import (
+    BoardDetector,
+    Detection,
+    DetectorConfig,
+    detect_frames,
+    diagnose_no_board,
+)
+from dbb_capture.poses.solve import FramePose, PoseConfig, pose_frames, reject_outliers, solve_pose
+from dbb_capture.poses.path import fuse_with_path, refine_jointly
+from dbb_capture.poses.corners import refine_saddles, refine_xjunctions
 from dbb_capture.synth.scene import Renderer, SynthConfig, make_scene, sensor, write_capture
 
 BOARD = BoardSpec(7, 5, 0.05, 0.0375, "DICT_5X5_100")
@@ -229,7 +238,7 @@ def test_preprocess_bad_input_exits_2(capture, tmp_path, case):
 
 def test_too_few_posed_frames_is_an_error(capture):
     from dbb_capture.capture.footage import open_footage
-    from dbb_capture.poses.estimate import estimate_poses
+    from dbb_capture.poses.run import estimate_poses
 
     with pytest.raises(DbbError, match="could be posed"):
         estimate_poses(open_footage(capture), BoardSpec.load(capture / "board.json"), None,
@@ -238,8 +247,8 @@ def test_too_few_posed_frames_is_an_error(capture):
 
 def test_device_poses_fill_frames_without_board():
     """Record3D: where the board is hidden, the ARKit pose mapped into the board frame is used."""
-    from dbb_capture.geometry.cameras import invert_rigid, rigid
-    from dbb_capture.poses.estimate import fill_from_device
+    from dbb_capture.geometry.transforms import invert_rigid, rigid
+    from dbb_capture.poses.path import fill_from_device
 
     poses = _smooth_path(8)
     board_from_device = rigid(cv2.Rodrigues(np.array([0.3, -1.2, 0.5]))[0], [1.0, -2.0, 0.5])
@@ -259,7 +268,7 @@ def test_worker_processes_return_every_frame_in_order(tmp_path, rendered):
     import av
 
     from dbb_capture.capture.footage import VideoSource
-    from dbb_capture.poses.estimate import detect_footage
+    from dbb_capture.poses.detect import detect_footage
 
     _, views = rendered
     path = tmp_path / "v.mp4"

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from dbb_capture.capture.board import BoardSpec
-from dbb_capture.geometry.cameras import invert_rigid, look_at, opencv_from_opengl
+from dbb_capture.geometry.transforms import invert_rigid, look_at
+from dbb_capture.geometry.conventions import opencv_from_opengl
 from dbb_capture.synth.scene import (UP, Renderer, SynthConfig, load_ground_truth, make_scene,
                                render_object_rgba, sensor)
 

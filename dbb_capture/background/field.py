@@ -36,10 +36,11 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..geometry.cameras import Intrinsics, pixel_grid, project_points
+from ..geometry.cameras import Intrinsics, project_points
 from ..crops.camera import CropCamera, crop_camera, cut_crop
 from ..core.errors import DbbError
-from ..static.field import RowTable
+from ..core.row_table import RowTable
+from ..geometry.rays import pixel_rays
 
 
 @dataclass(frozen=True)
@@ -192,7 +193,7 @@ class LayerField:
 
         lay, env = self.baked()
         h, w = cam.intr.height, cam.intr.width
-        o, d = pinhole_rays(cam.intr, cam.c2w)
+        o, d = _flat_rays(cam)
         basis = self.basis.cpu().numpy().astype(np.float64)
         c = self.center.cpu().numpy().astype(np.float64)
         ou, du = (o - c) @ basis.T, d @ basis.T
@@ -251,7 +252,7 @@ class LayerField:
         h, w = cam.intr.height, cam.intr.width
         if self.guess is None:
             return np.zeros((h, w), bool)
-        t, pu, pv = self.board_hits(*self.local_rays(*pinhole_rays(cam.intr, cam.c2w)))
+        t, pu, pv = self.board_hits(*self.local_rays(*_flat_rays(cam)))
         g = self.guess.shape[0]
         mx = ((pu / self.half + 1) * 0.5 * g - 0.5).astype(np.float32).reshape(h, w)
         my = ((pv / self.half + 1) * 0.5 * g - 0.5).astype(np.float32).reshape(h, w)
@@ -371,15 +372,6 @@ def env_depth_sweep(fld: LayerField, bank: RayBank, n_depths: int = 24, min_rays
     return depth, mean.reshape(he, we, 3).astype(np.float32), cnt.reshape(he, we)
 
 
-def pinhole_rays(intr: Intrinsics, c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Origins and unit directions (H*W, 3) in the board frame of an undistorted pinhole camera."""
-    px = pixel_grid(intr.width, intr.height).reshape(-1, 2)
-    d = np.stack([(px[:, 0] - intr.cx) / intr.fx, (px[:, 1] - intr.cy) / intr.fy, np.ones(len(px))], 1)
-    d = d @ np.asarray(c2w)[:3, :3].T
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    return np.broadcast_to(np.asarray(c2w)[:3, 3], d.shape).copy(), d
-
-
 def field_basis(up: np.ndarray, c2ws: np.ndarray, center: np.ndarray) -> np.ndarray:
     """Rows x_ref, y_ref, up (3, 3): x_ref is horizontal and 90 deg from the cameras' mean
     direction, so the far sphere's azimuth seam (+-180 deg) lies away from both the side the
@@ -462,7 +454,7 @@ def view_rays(view: PosedView, center: np.ndarray, radius: float, up: np.ndarray
     if touched:  # only then can pixels lie outside the frame
         mask, _ = cut_crop(np.full(view.image.shape[:2], 255, np.uint8), cam, view.intr, view.c2w)
         keep = mask.reshape(-1) == 255
-    o, d = pinhole_rays(cam.intr, cam.c2w)
+    o, d = _flat_rays(cam)
     if drop_sphere is not None:
         oc = center - o
         along = (oc * d).sum(1)
@@ -793,7 +785,7 @@ def room_rays(cam: CropCamera, observed: np.ndarray, alpha: np.ndarray, inside: 
     if inside is not None:
         room &= inside == 255
     keep = room.reshape(-1)
-    o, d = pinhole_rays(cam.intr, cam.c2w)
+    o, d = _flat_rays(cam)
     return (o[keep].astype(np.float32), d[keep].astype(np.float32),
             observed.reshape(-1, 3)[keep].astype(np.float32) / 255.0)
 
@@ -828,3 +820,9 @@ def refine_on_room(model: BackgroundModel, rays: Iterable[tuple[np.ndarray, np.n
                      steps=max(1, round(cfg.refine_share * cfg.steps)) if cfg.steps else None)
     fld, log = train_field(fld, bank, budget, on_step, coarse=False)
     return BackgroundModel(fld, model.mode, model.frames, model.rays, model.log, model.cfg, log)
+
+
+def _flat_rays(cam) -> tuple[np.ndarray, np.ndarray]:
+    """Origins and unit directions (H*W, 3) float64 in the board frame of a crop camera ``cam``."""
+    o, d = pixel_rays(cam.intr, cam.c2w, np.float64)
+    return o.reshape(-1, 3), d.reshape(-1, 3)

@@ -38,19 +38,18 @@ import cv2
 import numpy as np
 import torch
 
-from ..geometry.cameras import (
-    Intrinsics,
-    camera_rays,
-    invert_rigid,
-    look_at,
-    opencv_from_opengl,
-    pixel_grid,
-)
-from ..crops.camera import crop_camera, up_from_cameras, viewpoint
+from ..geometry.cameras import Intrinsics
+from ..geometry.rays import camera_rays, pixel_grid
+from ..geometry.transforms import invert_rigid, look_at
+from ..geometry.conventions import opencv_from_opengl
+from ..crops.camera import crop_camera
+from ..geometry.viewpoint import up_from_cameras, viewpoint
 from ..core.errors import DbbError
 from ..core.outputs import atomic_dir, read_json, write_json
 from ..core.progress import progress
 from .proxy import bundle_from_board, dynamic_proxy, read_glb, static_proxy, write_glb
+from ..core.device import pick_device
+from ..core.images import to_u8
 
 FORMAT = "deep-billboard"
 VERSION = 1
@@ -298,18 +297,13 @@ def read_cameras(path: Path, T: np.ndarray | None = None) -> list[View]:
     return views
 
 
-# --------------------------------------------------------------------------- renderers
-def _device() -> torch.device:
-    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-
-
 class StaticRenderer:
     """Straight RGBA renders of a static bundle's PlenOctree."""
 
     def __init__(self, tree_path: Path):
         from ..octree.render import PlenOctree, TreeRenderer
 
-        self.renderer = TreeRenderer(PlenOctree.load(tree_path), _device())
+        self.renderer = TreeRenderer(PlenOctree.load(tree_path), pick_device())
 
     def render(self, views: list[View], tick=None) -> list[np.ndarray]:
         out = []
@@ -318,10 +312,6 @@ class StaticRenderer:
             if tick:
                 tick()
         return out
-
-
-def to_u8(rgba: np.ndarray) -> np.ndarray:
-    return np.clip(np.round(np.asarray(rgba) * 255), 0, 255).astype(np.uint8)
 
 
 def load_stepper(path: Path):
@@ -347,9 +337,9 @@ def read_rgba(path: Path) -> np.ndarray:
 
 def _rgba_tensor(rgba_u8: np.ndarray, size: int) -> torch.Tensor:
     """(1, 4, S, S) float straight RGBA from uint8 (H, W, 4), resized on premultiplied colour."""
-    from ..dynamic.rssm import _resize_rgba
+    from ..core.images import resize_rgba
 
-    x = _resize_rgba(rgba_u8.astype(np.float32) / 255.0, size)
+    x = resize_rgba(rgba_u8.astype(np.float32) / 255.0, size)
     return torch.from_numpy(np.ascontiguousarray(x)).permute(2, 0, 1)[None].float()
 
 
@@ -739,7 +729,7 @@ def verify_bundle(path: Path) -> list[str]:
     """Check a bundle: manifest checksum and schema, every file's size and sha256, no stray
     files, the model loads, the proxy mesh reads with its collision nodes, and a fresh render
     matches the stored preview. Returns what passed; raises :class:`DbbError` at the first failure."""
-    from ..static.field import psnr
+    from ..core.metrics import psnr_from_mse
 
     done = []
     with open_bundle(path) as b:
@@ -786,7 +776,7 @@ def verify_bundle(path: Path) -> list[str]:
         done.append(f"model: {m.model['file']} loads")
         if fresh.shape != stored.shape:
             raise DbbError(f"{path}: a fresh render of {what} is {fresh.shape}, the stored preview {stored.shape}")
-        p = psnr(float((((fresh.astype(np.float32) - stored.astype(np.float32)) / 255.0) ** 2).mean()))
+        p = psnr_from_mse(float((((fresh.astype(np.float32) - stored.astype(np.float32)) / 255.0) ** 2).mean()))
         if p < CHECK_PSNR_DB:
             raise DbbError(f"{path}: a fresh render of {what} differs from the stored preview ({p:.1f} dB < "
                            f"{CHECK_PSNR_DB:.0f} dB)")

@@ -207,7 +207,8 @@ def _view_spread_deg(dirs: np.ndarray) -> float:
 def _project(P: np.ndarray, c2w: np.ndarray, intr) -> np.ndarray:
     """Pixels (N, 2) of board points (N, 3): plain pinhole maths for undistorted crop cameras
     (cv2.projectPoints is ~10x slower on a voxel grid), the lens model otherwise."""
-    from ..geometry.cameras import invert_rigid, project_points
+    from ..geometry.transforms import invert_rigid
+    from ..geometry.cameras import project_points
 
     if intr.distorted:
         return project_points(P, c2w, intr)

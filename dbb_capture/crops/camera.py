@@ -22,30 +22,10 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from ..geometry.cameras import Intrinsics, invert_rigid, look_at
+from ..geometry.cameras import Intrinsics
+from ..geometry.transforms import invert_rigid, look_at
 from ..core.errors import DbbError
-
-
-@dataclass(frozen=True)
-class Viewpoint:
-    """Where the camera stands relative to the object centre (degrees, metres).
-
-    Elevation is measured from the board plane toward ``up``; azimuth is right-handed about
-    ``up`` from the board's x axis (counter-clockwise seen from above: toward -y when up is -z).
-    """
-
-    azimuth_deg: float
-    elevation_deg: float
-    distance_m: float
-
-    def to_json(self) -> dict:
-        return {"azimuth_deg": round(self.azimuth_deg, 4), "elevation_deg": round(self.elevation_deg, 4),
-                "distance_m": round(self.distance_m, 6)}
-
-    def unit_vector(self) -> np.ndarray:
-        """Direction from the object to the camera in the (x_ref, y_ref, up) frame, (3,)."""
-        a, e = math.radians(self.azimuth_deg), math.radians(self.elevation_deg)
-        return np.array([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)])
+from ..geometry.viewpoint import Viewpoint, viewpoint
 
 
 @dataclass(frozen=True)
@@ -63,29 +43,6 @@ class CropCamera:
         c = (size - 1) / 2
         return CropCamera(Intrinsics(size, size, self.intr.fx * s, self.intr.fy * s, c, c), self.c2w,
                           self.viewpoint, self.window_px)
-
-
-def up_from_cameras(c2w: np.ndarray) -> np.ndarray:
-    """The board normal on the side where the cameras are: -z or +z of the board frame (3,).
-
-    ``c2w``: OpenCV camera-to-world poses (N, 4, 4) in the board frame. Derived from the data:
-    most camera centres lie on one side of the board plane z = 0.
-    """
-    z = np.asarray(c2w)[:, 2, 3]
-    if len(z) == 0:
-        raise DbbError("no posed cameras to tell which side of the board is up")
-    return np.array([0.0, 0.0, -1.0 if np.median(z) < 0 else 1.0])
-
-
-def viewpoint(eye: np.ndarray, center: np.ndarray, up: np.ndarray) -> Viewpoint:
-    """Azimuth, elevation and distance of a camera centre ``eye`` (3,) from ``center`` (3,)."""
-    v = np.asarray(eye, float) - np.asarray(center, float)
-    dist = float(np.linalg.norm(v))
-    x_ref = np.array([1.0, 0.0, 0.0])
-    y_ref = np.cross(up, x_ref)  # right-handed about up
-    el = math.degrees(math.asin(np.clip(v @ up / dist, -1, 1)))
-    az = math.degrees(math.atan2(v @ y_ref, v @ x_ref))
-    return Viewpoint(az, el, dist)
 
 
 def crop_camera(c2w: np.ndarray, src: Intrinsics, center: np.ndarray, radius: float, up: np.ndarray,
@@ -233,7 +190,7 @@ class CropRecord:
     background_path: str | None = None
 
     def to_json(self) -> dict:
-        from ..geometry.cameras import opengl_from_opencv
+        from ..geometry.conventions import opengl_from_opencv
 
         i = self.cam.intr
         d = {"file_path": self.file_path,

@@ -23,9 +23,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..geometry.cameras import Intrinsics, camera_rays, opencv_from_opengl, pixel_grid
+from ..geometry.cameras import Intrinsics
+from ..geometry.conventions import opencv_from_opengl
 from ..core.errors import InputError
 from ..core.outputs import read_json
+from ..geometry.cameras import scaled_intrinsics
 
 DATASET_FILES = ("crops.json", "transforms.json", "transforms_train.json")
 _IMAGE_EXTS = ("", ".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
@@ -240,18 +242,6 @@ def estimate_volume(frames: list[Frame], margin: float = 1.1) -> ObjectVolume:
     return ObjectVolume(tuple(float(v) for v in c), r, estimated=True)  # type: ignore[arg-type]
 
 
-def scaled_intrinsics(intr: Intrinsics, downscale: float) -> Intrinsics:
-    """Intrinsics of the image resized by 1/``downscale`` (pixel centres kept consistent)."""
-    if downscale == 1:
-        return intr
-    w = max(1, int(round(intr.width / downscale)))
-    h = max(1, int(round(intr.height / downscale)))
-    sx, sy = w / intr.width, h / intr.height
-    # OpenCV centres: pixel edge 0 sits at -0.5 in both images.
-    return replace(intr, width=w, height=h, fx=intr.fx * sx, fy=intr.fy * sy,
-                   cx=(intr.cx + 0.5) * sx - 0.5, cy=(intr.cy + 0.5) * sy - 0.5)
-
-
 def load_rgba(frame: Frame, downscale: float = 1.0) -> np.ndarray:
     """Straight RGBA float32 (h, w, 4) in [0, 1] at 1/``downscale`` size.
 
@@ -309,17 +299,6 @@ def _area_downscale(img: np.ndarray, intr: Intrinsics, downscale: float) -> np.n
     return cv2.resize(img, (target.width, target.height), interpolation=cv2.INTER_AREA)
 
 
-def frame_rays(intr: Intrinsics, c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """World rays through every pixel centre: origins and unit directions, each (h, w, 3).
-
-    ``c2w`` is OpenCV camera-to-world (4, 4); distortion is inverted by :func:`camera_rays`.
-    """
-    d_cam = camera_rays(intr, pixel_grid(intr.width, intr.height))
-    d = d_cam @ np.asarray(c2w)[:3, :3].T
-    o = np.broadcast_to(np.asarray(c2w)[:3, 3], d.shape)
-    return np.ascontiguousarray(o, dtype=np.float32), np.ascontiguousarray(d, dtype=np.float32)
-
-
 def holdout_every(frames: list[Frame], n: int) -> list[Frame]:
     """Mark every ``n``-th frame (0, n, 2n, ...) as ``test``; the rest ``train``."""
     if n <= 0:
@@ -332,11 +311,10 @@ def holdout_named(frames: list[Frame], names: set[str]) -> list[Frame]:
     return [replace(f, split="test" if f.name in names else "train") for f in frames]
 
 
-
 def write_transforms(path: Path, frames: list[Frame], volume: ObjectVolume | None = None) -> None:
     """Write ``frames`` as a nerfstudio ``transforms.json`` (per-frame intrinsics, OpenGL
     camera-to-world, ``split``), image paths relative to the file where possible."""
-    from ..geometry.cameras import opengl_from_opencv
+    from ..geometry.conventions import opengl_from_opencv
     from ..core.outputs import write_json
 
     path = Path(path)

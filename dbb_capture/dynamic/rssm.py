@@ -54,6 +54,9 @@ from ..core.errors import DbbError
 from ..core.outputs import (atomic_dir, check_run_output, read_json, resume_checkpoint, run_work_dir,
                       training_minutes, write_json)
 from ..core.progress import progress
+from ..core.device import pick_device
+from ..core.images import resize_rgba
+from ..core.metrics import psnr, ssim
 
 RUN_FORMAT = "dbb-rssm-run"
 SIZES = (32, 64, 128, 256)
@@ -1394,17 +1397,6 @@ class SequenceData:
         return np.array([s for s, sp in self.windows if sp == split], dtype=np.int64)
 
 
-def _resize_rgba(rgba: np.ndarray, size: int) -> np.ndarray:
-    """Straight RGBA float (h, w, 4) -> (size, size, 4), averaging premultiplied colour."""
-    if rgba.shape[0] == size and rgba.shape[1] == size:
-        return rgba
-    pm = np.concatenate([rgba[..., :3] * rgba[..., 3:4], rgba[..., 3:4]], -1)
-    interp = cv2.INTER_AREA if rgba.shape[0] > size else cv2.INTER_LINEAR
-    pm = cv2.resize(pm, (size, size), interpolation=interp)
-    a = pm[..., 3:4]
-    return np.concatenate([np.where(a > 1e-6, pm[..., :3] / np.maximum(a, 1e-6), 0.0).clip(0, 1), a], -1)
-
-
 def load_sequences(dataset: Path, size: int = 64) -> SequenceData:
     """Read ``crops.json`` (RGBA crops, per-frame ``viewpoint``, ``split``, ``time``, ``sequences``).
 
@@ -1441,7 +1433,7 @@ def load_sequences(dataset: Path, size: int = 64) -> SequenceData:
     with progress(transient=True) as prog:
         task = prog.add_task("load crops", total=len(raw), info="")
         for i, fr in enumerate(ds.frames):
-            imgs[i] = np.round(_resize_rgba(load_rgba(fr), size) * 255).astype(np.uint8)
+            imgs[i] = np.round(resize_rgba(load_rgba(fr), size) * 255).astype(np.uint8)
             prog.update(task, advance=1)
     return SequenceData(src, imgs, np.array(views, np.float32), splits, np.array(times), windows, length,
                         {k: v for k, v in meta.items() if k != "frames"})
@@ -1689,10 +1681,6 @@ def lr_at(tcfg: TrainConfig, fraction: float) -> float:
     return tcfg.lr * (tcfg.lr_end + (1.0 - tcfg.lr_end) * 0.5 * (1.0 + math.cos(math.pi * fraction)))
 
 
-def pick_device() -> torch.device:
-    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-
-
 def train(state: TrainState, data: SequenceData, tcfg: TrainConfig, ckpt: Path | None = None,
           on_step=None) -> TrainState:
     """Train until ``tcfg.minutes`` (wall clock, over all sessions) or ``tcfg.steps`` is reached.
@@ -1809,20 +1797,6 @@ def _fraction(state: TrainState, tcfg: TrainConfig) -> float:
     if tcfg.minutes:
         f = max(f, state.seconds / (60 * tcfg.minutes))
     return min(f, 1.0)
-
-
-# --------------------------------------------------------------------------- evaluation
-def psnr(pred: np.ndarray, truth: np.ndarray) -> float:
-    """PSNR (dB) of premultiplied RGBA arrays in [0, 1] of equal shape."""
-    mse = float(np.mean((pred.astype(np.float64) - truth) ** 2))
-    return 99.0 if mse <= 1e-10 else -10 * math.log10(mse)
-
-
-def ssim(pred: np.ndarray, truth: np.ndarray) -> float:
-    """SSIM of premultiplied RGBA (S, S, 4) in [0, 1] (channel mean)."""
-    from skimage.metrics import structural_similarity
-
-    return float(structural_similarity(pred, truth, channel_axis=-1, data_range=1.0))
 
 
 def motion_energy(frames: np.ndarray) -> float:

@@ -21,7 +21,7 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-from ..static.field import _C0, _C1, _C2, _C3
+from ..geometry.sh_numba import sh_basis_into
 
 BRICK_SHIFT = 3      # 8^3 leaves per brick (the leaf table's unit)
 _FAR = 1e30          # 1 / direction component when that component is ~0
@@ -29,31 +29,6 @@ _MAX_HITS = 64       # colour lookups a ray defers before shading them (see trac
 
 # No nnan/ninf: exits of axis-parallel rays are huge finite numbers and must compare right.
 _FM = {"nsz", "arcp", "contract", "afn", "reassoc"}
-
-
-@numba.njit(cache=True, fastmath=_FM, nogil=True)
-def _sh_basis(dx: float, dy: float, dz: float, degree: int, out: np.ndarray) -> None:
-    """Real SH basis at a unit direction into ``out`` ((degree+1)^2,), svox's convention."""
-    out[0] = _C0
-    if degree >= 1:
-        out[1] = -_C1 * dy
-        out[2] = _C1 * dz
-        out[3] = -_C1 * dx
-    if degree >= 2:
-        xx, yy, zz = dx * dx, dy * dy, dz * dz
-        out[4] = _C2[0] * dx * dy
-        out[5] = _C2[1] * dy * dz
-        out[6] = _C2[2] * (2 * zz - xx - yy)
-        out[7] = _C2[3] * dx * dz
-        out[8] = _C2[4] * (xx - yy)
-        if degree >= 3:
-            out[9] = _C3[0] * dy * (3 * xx - yy)
-            out[10] = _C3[1] * dx * dy * dz
-            out[11] = _C3[2] * dy * (4 * zz - xx - yy)
-            out[12] = _C3[3] * dz * (2 * zz - 3 * xx - 3 * yy)
-            out[13] = _C3[4] * dx * (4 * zz - xx - yy)
-            out[14] = _C3[5] * dz * (xx - yy)
-            out[15] = _C3[6] * dx * (xx - 3 * yy)
 
 
 @numba.njit(cache=True, fastmath=_FM, nogil=True)
@@ -191,7 +166,7 @@ def _shade(nh: int, hrow: np.ndarray, hcell: np.ndarray, hw: np.ndarray, coef: n
                 ey = (((c >> 10) & 1023) + 0.5 - py) * sy
                 ez = ((c & 1023) + 0.5 - pz) * sz
                 en = 1.0 / max(math.sqrt(ex * ex + ey * ey + ez * ez), 1e-12)
-                _sh_basis(ex * en, ey * en, ez * en, degree, shb)
+                sh_basis_into(ex * en, ey * en, ez * en, degree, shb)
                 v0, v1, v2 = _colour(coef, row, shb, nb, sigmoid)
                 e = _pack(v0, v1, v2, frame)
                 cc[row, 0] = e
@@ -279,7 +254,7 @@ def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.n
             _write(out, pixel[r], mode, bg, 0.0, 0.0, 0.0, 0.0)
             continue
         if frame == 0:
-            _sh_basis(wx, wy, wz, degree, shb)
+            sh_basis_into(wx, wy, wz, degree, shb)
         eps = 1e-4 / math.sqrt(dx * dx + dy * dy + dz * dz)   # a 1e-4 leaf nudge
         T = 1.0
         cr = 0.0

@@ -32,7 +32,8 @@ import torch.nn.functional as F
 
 from ..geometry.cameras import Intrinsics
 from ..core.errors import DbbError
-from ..static.field import COLOUR_ACTIVATION, VoxelField, sh_basis
+from ..geometry.sh import COLOUR_ACTIVATION, sh_basis
+from ..static.field import VoxelField
 from ..core.outputs import write_bytes_atomic
 
 _FORMATS = {1: "SH1", 4: "SH4", 9: "SH9", 16: "SH16"}
@@ -256,7 +257,7 @@ def leaf_max_weights(tree: PlenOctree, cameras: Sequence[tuple[np.ndarray, Intri
     Returns the leaves' fine-lattice cells (K, 3) int64, their data rows (K,) int64 and
     their largest weights (K,) float32.
     """
-    from ..datasets.records import scaled_intrinsics
+    from ..geometry.cameras import scaled_intrinsics
 
     r = TreeRenderer(tree, t_min=floor, w_min=floor, threads=threads, backend="numba")
     cells, rows = r._np["cells"], r._np["rows"]
@@ -537,7 +538,7 @@ class TreeRenderer:
         order, and each one's pixel (row-major index), cached per intrinsics (undistorting
         every pixel is the dearest part of a small frame). Neighbouring rays meet the same
         leaves, so tiles keep the leaf data they read in cache."""
-        from ..geometry.cameras import camera_rays, pixel_grid
+        from ..geometry.rays import camera_rays, pixel_grid
 
         if self._cam_cache[0] != intr:
             H, W, s = intr.height, intr.width, 8
@@ -653,9 +654,9 @@ class TreeRenderer:
                                  None if background is None else tuple(float(v) for v in background),
                                  self._leaf_pixels(c2w, intr) < _EAGER_PIXELS)
             return out.reshape(intr.height, intr.width, -1)
-        from ..datasets.records import frame_rays
+        from ..geometry.rays import pixel_rays
 
-        o, d = frame_rays(intr, c2w)
+        o, d = pixel_rays(intr, c2w)
         H, W = o.shape[:2]
         o = torch.from_numpy(o.reshape(-1, 3))
         d = torch.from_numpy(d.reshape(-1, 3))

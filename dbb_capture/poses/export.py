@@ -16,9 +16,11 @@ import cv2
 import numpy as np
 
 from ..capture.board import BoardSpec
-from ..geometry.cameras import Intrinsics, invert_rigid, opengl_from_opencv
+from ..geometry.cameras import Intrinsics
+from ..geometry.transforms import invert_rigid
+from ..geometry.conventions import opengl_from_opencv
 from ..core.outputs import write_json
-from .estimate import PoseRun
+from .run import PoseRun
 
 
 @dataclass(frozen=True)

@@ -48,10 +48,10 @@ from ..crops.camera import (
     rematte,
     split_by_time,
     temporal_difference,
-    up_from_cameras,
     vote_neighbours,
     voted_rgba,
 )
+from ..geometry.viewpoint import up_from_cameras
 from ..core.errors import DbbError, InputError
 from ..poses.export import (
     PosedImage,
@@ -64,7 +64,9 @@ from ..poses.export import (
 from ..capture.footage import FootageSource, R3dSource, capture_footage, open_footage
 from ..crops.matte import CaptureMatte, MatteConfig, capture_matte, matte, sure_object_counts
 from ..core.outputs import atomic_dir, read_json, write_json
-from ..poses.estimate import DetectorConfig, PoseConfig, PoseRun, estimate_poses
+from ..poses.detect import DetectorConfig
+from ..poses.solve import PoseConfig
+from ..poses.run import PoseRun, estimate_poses
 from ..core.progress import progress
 
 
@@ -729,7 +731,8 @@ def fixed_camera_stage(ctx: StageContext, _previous: Any = None) -> CropsOutput:
     option of opaque crops, ``fixed_matte=False``); each frame's window is matted against it. There is no metric pose: every crop shares one nominal camera (identity pose, a
     ``FIXED_HFOV_DEG`` field of view) and so one viewpoint; ``crops.json`` says so.
     """
-    from ..crops.camera import CropCamera, viewpoint
+    from ..crops.camera import CropCamera
+    from ..geometry.viewpoint import viewpoint
 
     inp, cfg, out = ctx.inputs, ctx.cfg, ctx.out
     x, y, side = cfg.fixed_window

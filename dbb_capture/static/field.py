@@ -29,36 +29,14 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..datasets.records import Frame, ObjectVolume, frame_rays, load_rgb, load_rgba, scaled_intrinsics
+from ..datasets.records import Frame, ObjectVolume, load_rgb, load_rgba
+from ..geometry.rays import pixel_rays
+from ..geometry.cameras import scaled_intrinsics
 from ..core.errors import DbbError
-
-COLOUR_ACTIVATION = "sigmoid"   # what the SH sum goes through; recorded in every baked tree
-
-_C0 = 0.28209479177387814
-_C1 = 0.4886025119029199
-_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792,
-       0.5462742152960396)
-_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
-       -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
-
-
-def sh_basis(degree: int, d: torch.Tensor) -> torch.Tensor:
-    """Real SH basis (..., (degree+1)^2) at unit directions ``d`` (..., 3), svox's convention."""
-    x, y, z = d.unbind(-1)
-    out = [torch.full_like(x, _C0)]
-    if degree >= 1:
-        out += [-_C1 * y, _C1 * z, -_C1 * x]
-    if degree >= 2:
-        xx, yy, zz = x * x, y * y, z * z
-        out += [_C2[0] * x * y, _C2[1] * y * z, _C2[2] * (2 * zz - xx - yy), _C2[3] * x * z,
-                _C2[4] * (xx - yy)]
-    if degree >= 3:
-        out += [_C3[0] * y * (3 * xx - yy), _C3[1] * x * y * z, _C3[2] * y * (4 * zz - xx - yy),
-                _C3[3] * z * (2 * zz - 3 * xx - 3 * yy), _C3[4] * x * (4 * zz - xx - yy),
-                _C3[5] * z * (xx - yy), _C3[6] * x * (xx - 3 * yy)]
-    if degree > 3:
-        raise ValueError("SH degree above 3 is not supported")
-    return torch.stack(out, -1)
+from ..core.metrics import psnr_from_mse
+from ..core.row_table import RowTable
+from ..geometry.cameras import Intrinsics
+from ..geometry.sh import sh_basis
 
 
 def contract(x: torch.Tensor) -> torch.Tensor:
@@ -182,70 +160,6 @@ class FieldConfig:
 def _lattice_lin(i: torch.Tensor, res: int) -> torch.Tensor:
     """Linear index of integer lattice coordinates (..., 3)."""
     return (i[..., 0] * res + i[..., 1]) * res + i[..., 2]
-
-
-class RowTable:
-    """A parameter table (N, C) whose gradient is gathered row-wise and updated by lazy Adam.
-
-    Autograd's own paths are slow here: a dense gradient clears the whole table every step and
-    a sparse one sorts millions of indices to coalesce them. Instead the backward pass adds into
-    one persistent buffer and marks the rows it touched; :meth:`adam_step` updates only those.
-    """
-
-    def __init__(self, values: torch.Tensor):
-        self.data = values.contiguous()
-        self.grad = torch.zeros_like(self.data)
-        self.touched = torch.zeros(self.data.shape[0], dtype=torch.bool, device=self.data.device)
-        self.m = torch.zeros_like(self.data)
-        self.v = torch.zeros_like(self.data)
-        self.t = 0
-        # A leaf that requires grad, so autograd calls our backward; it never gets a gradient.
-        self.handle = torch.zeros((), device=self.data.device, requires_grad=True)
-
-    def gather(self, rows: torch.Tensor) -> torch.Tensor:
-        """``data[rows]`` (..., C), differentiable into :attr:`grad`."""
-        return _Gather.apply(self.handle, rows, self)
-
-    def adam_step(self, lr: float, b1: float = 0.9, b2: float = 0.99, eps: float = 1e-8) -> None:
-        """One Adam step on the touched rows; their gradient is cleared."""
-        if self.data.device.type == "cpu":
-            from .kernels import adam_rows    # numba; imported late (it imports this module)
-
-            self.t += 1
-            step = lr * math.sqrt(1 - b2 ** self.t) / (1 - b1 ** self.t)
-            adam_rows(self.data.numpy(), self.grad.numpy(), self.m.numpy(), self.v.numpy(),
-                      self.touched.numpy(), step, b1, b2, eps)
-            return
-        idx = self.touched.nonzero()[:, 0]
-        if idx.numel() == 0:
-            return
-        self.t += 1
-        g = self.grad[idx]
-        m = self.m[idx].mul_(b1).add_(g, alpha=1 - b1)
-        v = self.v[idx].mul_(b2).addcmul_(g, g, value=1 - b2)
-        self.m[idx] = m
-        self.v[idx] = v
-        step = lr * math.sqrt(1 - b2 ** self.t) / (1 - b1 ** self.t)
-        self.data[idx] -= step * m / (v.sqrt() + eps)
-        self.grad[idx] = 0
-        self.touched[idx] = False
-
-
-class _Gather(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, handle, rows, table):  # noqa: D102 - autograd API
-        ctx.save_for_backward(rows)
-        ctx.table = table
-        return table.data[rows]
-
-    @staticmethod
-    def backward(ctx, g):  # noqa: D102 - autograd API
-        (rows,) = ctx.saved_tensors
-        t = ctx.table
-        flat = rows.reshape(-1)
-        t.grad.index_add_(0, flat, g.reshape(flat.numel(), t.data.shape[1]))
-        t.touched[flat] = True
-        return None, None, None
 
 
 _CORNERS = torch.tensor([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)])
@@ -659,7 +573,8 @@ def carve_mask(views: Silhouettes, points: np.ndarray, cell: float, share: float
     a pixel, and holes that fewer views than ``share`` have, keep it."""
     import cv2
 
-    from ..geometry.cameras import invert_rigid, project_points
+    from ..geometry.transforms import invert_rigid
+    from ..geometry.cameras import project_points
 
     seen = np.zeros(len(points), np.int32)
     empty = np.zeros(len(points), np.int32)
@@ -691,7 +606,7 @@ def robust_weights(error: torch.Tensor, scale: float) -> torch.Tensor:
 def frame_tensors(frame: Frame, downscale: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(origins, dirs, rgba) of one frame at 1/downscale size, each (h, w, C) float32."""
     rgba = load_rgba(frame, downscale)
-    o, d = frame_rays(scaled_intrinsics(frame.intr, downscale), frame.c2w)
+    o, d = pixel_rays(scaled_intrinsics(frame.intr, downscale), frame.c2w)
     return o, d, rgba
 
 
@@ -906,10 +821,6 @@ def cpu_tv_step(field: VoxelField, n: int, gen: torch.Generator) -> tuple[float,
                    field.cfg.tv_density, field.cfg.tv_sh)
 
 
-def psnr(mse: float) -> float:
-    return float(-10 * math.log10(max(mse, 1e-12)))
-
-
 def new_field(cfg: FieldConfig, volume: ObjectVolume, device: torch.device) -> VoxelField:
     """A fresh, nearly empty field over the whole lattice at the first resolution."""
     return VoxelField(cfg, volume, cfg.res_start, device)
@@ -1009,10 +920,10 @@ def train(state: TrainState, bank: RayBank, budget: Budget,
         state.seconds = time.perf_counter() - t_start
         if state.step % 10 == 0 or state.step == 1:
             state.history.append({"step": state.step, "seconds": round(state.seconds, 2),
-                                  "loss": float(loss.detach()), "psnr": psnr(ema), "res": fld.res,
+                                  "loss": float(loss.detach()), "psnr": psnr_from_mse(ema), "res": fld.res,
                                   "points": fld.n_active})
         if on_step is not None:
-            on_step(state, psnr(ema))
+            on_step(state, psnr_from_mse(ema))
         if checkpoint is not None and time.perf_counter() - last_ckpt > checkpoint_every_s:
             state.save(checkpoint)
             last_ckpt = time.perf_counter()
@@ -1023,5 +934,3 @@ def train(state: TrainState, bank: RayBank, budget: Budget,
     return state
 
 
-def pick_device() -> torch.device:
-    return torch.device("cuda" if torch.cuda.is_available() else "cpu")

@@ -25,7 +25,7 @@ import numpy as np
 from numba import prange
 
 from .field import BETA_EPS, RAY_RUN
-from ..octree.kernels import _sh_basis
+from ..geometry.sh_numba import sh_basis_into
 
 _FM = {"nsz", "arcp", "contract", "afn", "reassoc"}
 _CHUNK = RAY_RUN     # rays per parallel work item: one run of neighbouring pixels (scratch per chunk)
@@ -100,7 +100,7 @@ def render_rays_cpu(o: np.ndarray, d: np.ndarray, jitter: np.ndarray, bg: np.nda
                 s = math.sqrt(disc)
                 t0 = max(-b - s, 0.0)
                 t1 = max(-b + s, 0.0)
-                _sh_basis(dx, dy, dz, degree, shb)
+                sh_basis_into(dx, dy, dz, degree, shb)
                 # Lattice coordinates (point i at i) move by (d * inv_cell) per unit of t.
                 bx, by, bz = (ox + 1.0) * inv_cell - 0.5, (oy + 1.0) * inv_cell - 0.5, (oz + 1.0) * inv_cell - 0.5
                 vx, vy, vz = dx * inv_cell, dy * inv_cell, dz * inv_cell
@@ -272,21 +272,3 @@ def tv_grad(picks: np.ndarray, active: np.ndarray, index: np.ndarray, res: int, 
     return sd / m, ss / (m * C)
 
 
-@numba.njit(cache=True, fastmath=_FM, nogil=True, parallel=True)
-def adam_rows(data: np.ndarray, grad: np.ndarray, m: np.ndarray, v: np.ndarray, touched: np.ndarray,
-              step_size: float, b1: float, b2: float, eps: float) -> None:
-    """Adam on the rows marked in ``touched`` (N,) of ``data`` (N, C); clears their gradient
-    and mark. ``step_size`` already holds the bias corrections (lr * sqrt(1-b2^t) / (1-b1^t))."""
-    idx = np.nonzero(touched)[0]
-    C = data.shape[1]
-    for k in prange(idx.shape[0]):
-        r = idx[k]
-        for c in range(C):
-            g = grad[r, c]
-            mm = b1 * m[r, c] + (1 - b1) * g
-            vv = b2 * v[r, c] + (1 - b2) * g * g
-            m[r, c] = mm
-            v[r, c] = vv
-            data[r, c] -= step_size * mm / (math.sqrt(vv) + eps)
-            grad[r, c] = 0.0
-        touched[r] = False

@@ -29,11 +29,32 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..datasets.records import (Frame, ObjectVolume, PosedDataset, estimate_volume, holdout_every,
-                       holdout_named, load_dataset, scaled_intrinsics)
+from ..datasets.records import (
+    Frame,
+    ObjectVolume,
+    PosedDataset,
+    estimate_volume,
+    holdout_every,
+    holdout_named,
+    load_dataset,
+)
+from ..geometry.cameras import scaled_intrinsics
 from ..core.errors import DbbError
-from .field import (COLOUR_ACTIVATION, Budget, FieldConfig, TrainState, VoxelField, build_ray_bank, frame_tensors,
-                     lattice_for_views, new_field, pick_device, psnr, render_image, train)
+from ..geometry.sh import COLOUR_ACTIVATION
+from .field import (
+    Budget,
+    FieldConfig,
+    TrainState,
+    VoxelField,
+    build_ray_bank,
+    frame_tensors,
+    lattice_for_views,
+    new_field,
+    render_image,
+    train,
+)
+from ..core.device import pick_device
+from ..core.metrics import psnr_from_mse
 from ..octree.render import PRUNE_WEIGHT, PlenOctree, TreeRenderer, bake
 from ..core.outputs import (atomic_dir, check_run_output, read_json, resume_checkpoint, run_work_dir,
                       training_minutes, write_json)
@@ -252,8 +273,8 @@ def write_report(state: TrainState, tree: PlenOctree, frames: list[Frame], cfg: 
         img_tree = rend.render(f.c2w, intr, (1.0, 1.0, 1.0))
         img_field = render_image(state.field, torch.from_numpy(o), torch.from_numpy(d), (1.0, 1.0, 1.0))
         rows.append({"frame": f.name,
-                     "psnr_tree_white": psnr(float(((img_tree - gt) ** 2).mean())),
-                     "psnr_field_white": psnr(float(((img_field - gt) ** 2).mean()))})
+                     "psnr_tree_white": psnr_from_mse(float(((img_tree - gt) ** 2).mean())),
+                     "psnr_field_white": psnr_from_mse(float(((img_field - gt) ** 2).mean()))})
         # A scene's tree holds only the inner sphere: show the whole field beside the truth.
         shown = img_field if state.field.cfg.mode == "scene" else img_tree
         side = np.concatenate([shown, gt], 1)
@@ -282,7 +303,7 @@ def evaluate_views(renderer: TreeRenderer, frames: list[Frame], downscale: float
             gt = rgba[..., :3] * rgba[..., 3:] + (1 - rgba[..., 3:]) * np.asarray(bg, np.float32)
             img = renderer.render(f.c2w, intr, bg)
             key = "white" if bg == (1.0, 1.0, 1.0) else ("black" if bg == (0.0, 0.0, 0.0) else str(bg))
-            row[f"psnr_{key}"] = psnr(float(((img - gt) ** 2).mean()))
+            row[f"psnr_{key}"] = psnr_from_mse(float(((img - gt) ** 2).mean()))
             row[f"ssim_{key}"] = float(structural_similarity(
                 img, gt, data_range=1.0, channel_axis=-1, gaussian_weights=True, sigma=1.5,
                 use_sample_covariance=False))

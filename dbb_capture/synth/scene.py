@@ -28,7 +28,10 @@ import numpy as np
 import torch
 
 from ..capture.board import BoardSpec
-from ..geometry.cameras import Intrinsics, camera_rays, look_at, opengl_from_opencv, pixel_grid
+from ..geometry.cameras import Intrinsics
+from ..geometry.rays import camera_rays, pixel_grid
+from ..geometry.transforms import look_at
+from ..geometry.conventions import opengl_from_opencv
 from ..core.errors import DbbError
 from ..core.outputs import atomic_dir, write_json
 from ..core.progress import progress
