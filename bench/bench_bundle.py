@@ -74,7 +74,8 @@ def flipped_byte_caught(bundle: Path, scratch: Path) -> dict:
 
 
 def bench_static(run: Path, out: Path, capture: Path | None, seed: int, res: int) -> dict:
-    from dbb_capture.datasets.records import load_dataset, load_rgba
+    from dbb_capture.datasets.transforms import load_dataset
+    from dbb_capture.datasets.images import load_rgba
     from dbb_capture.octree.render import TreeRenderer
     from dbb_capture.static.run import load_run
 

@@ -132,7 +132,8 @@ def both_passes(crops: list, times: np.ndarray, fill: float, cfg, counts: np.nda
     in time order, ``times`` (N,) s) after the second pass, as the crops stage runs it: the
     capture's statistics (``counts``: summed sure object colours where a prediction was a guess),
     matte again, temporal median over neighbouring frames."""
-    from dbb_capture.crops.camera import at_output, follows_previous, rematte as second, vote_neighbours, voted_rgba
+    from dbb_capture.crops.object import at_output, rematte as second, vote_neighbours, voted_rgba
+    from dbb_capture.crops.sequences import follows_previous
     from dbb_capture.crops.matte import capture_matte
 
     cap = capture_matte([oc.noise for oc in crops], counts, [oc.room_detail for oc in crops], cfg.sharp_min_detail)
@@ -149,7 +150,8 @@ def rematte(capture: Path, dataset: Path) -> tuple[Path, Path]:
     import shutil
 
     from dbb_capture.background.field import BackgroundModel
-    from dbb_capture.crops.camera import at_output, crop_windows, matte_scale, object_crop
+    from dbb_capture.crops.object import at_output, matte_scale, object_crop
+    from dbb_capture.crops.camera import crop_windows
     from dbb_capture.capture.footage import open_footage
     from dbb_capture.crops.matte import MatteConfig, sure_object_counts
 
@@ -264,7 +266,7 @@ def budget(work: Path, captures: list[Path], fill: float = 0.9) -> list[dict]:
     (b) the matte of the real footage's crop against the perfect background (what the footage's
     noise, compression and chroma cost the matte; the rest of the ``quality`` figure is the
     background field's)."""
-    from dbb_capture.crops.camera import ObjectCrop
+    from dbb_capture.crops.object import ObjectCrop
     from dbb_capture.crops.matte import MatteConfig, matte_and_noise, sphere_disc
 
     cfg = MatteConfig()
@@ -349,7 +351,7 @@ def quality(work: Path, captures: list[Path], minutes: float, rescore: bool = Fa
 def speed(work: Path, minutes: float) -> None:
     from dbb_capture.background.field import BackgroundModel
     from dbb_capture.capture.board import BoardSpec
-    from dbb_capture.crops.camera import at_output, object_crop, rematte, voted_rgba
+    from dbb_capture.crops.object import at_output, object_crop, rematte, voted_rgba
     from dbb_capture.geometry.viewpoint import up_from_cameras
     from dbb_capture.crops.matte import capture_matte
     from dbb_capture.capture.footage import open_footage

@@ -216,7 +216,8 @@ def preprocess(capture: Path, output: Path, board_path: Path | None, camera_path
     from dataclasses import replace
 
     from dbb_capture.background.field import BackgroundConfig
-    from dbb_capture.preprocess.run import PreprocessConfig, resolve_capture, run_preprocess
+    from dbb_capture.preprocess.inputs import PreprocessConfig, resolve_capture
+    from dbb_capture.preprocess.run import run_preprocess
 
     window = None
     if crop_window is not None:

@@ -10,13 +10,14 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from dbb_capture.background.field import (BackgroundConfig, LayerField, PosedView, RayBank, new_field, parallax_coverage,
+from dbb_capture.background.field import (BackgroundConfig, LayerField, TrainingView, RayBank, new_field, parallax_coverage,
                                     train_background, training_size)
 from dbb_capture.geometry.cameras import Intrinsics, project_points
 from dbb_capture.geometry.transforms import look_at
 from dbb_capture.geometry.conventions import opencv_from_opengl
 from dbb_capture.cli.capture import main
-from dbb_capture.crops.camera import crop_camera, crop_maps, object_crop
+from dbb_capture.crops.camera import crop_camera, crop_maps
+from dbb_capture.crops.object import object_crop
 from dbb_capture.geometry.viewpoint import up_from_cameras
 from dbb_capture.capture.footage import open_footage
 from dbb_capture.synth.scene import SynthConfig, load_ground_truth, write_capture
@@ -77,7 +78,7 @@ def plate_capture(tmp_path_factory):
 def _views(cap, name, key):
     intr, cams, _ = load_ground_truth(cap)
     frames = list(open_footage(cap / name).read(range(len(cams[key]))))
-    return [PosedView(f.image, intr, opencv_from_opengl(np.array(c["transform_matrix"])))
+    return [TrainingView(f.image, intr, opencv_from_opengl(np.array(c["transform_matrix"])))
             for f, c in zip(frames, cams[key])]
 
 
@@ -272,7 +273,7 @@ def test_second_matte_pass_votes_across_segment_cuts(tmp_path):
     """The crops stage's second pass gives the same crops in one segment or in three (each sees its
     neighbours across the cut), and the temporal median skips a gap in time."""
     from dbb_capture.crops.matte import CaptureMatte, MatteConfig
-    from dbb_capture.preprocess.run import _FirstMatte, _matte_segment, _MatteSegment
+    from dbb_capture.preprocess.crop_stage import _FirstMatte, _matte_segment, _MatteSegment
 
     center = np.array([0.3, 0.2, -0.08])
     c2ws = _ring(center, n=8)

@@ -27,7 +27,7 @@ def static_run(tmp_path_factory):
     """A tiny PlenOctree run (a few steps on 24 px views of the synthetic toy)."""
     from test_fields import synthetic_object_frames
 
-    from dbb_capture.datasets.records import write_transforms
+    from dbb_capture.datasets.transforms import write_transforms
     from dbb_capture.static.field import FieldConfig
     from dbb_capture.static.run import RunConfig, train_run
 

@@ -17,7 +17,7 @@ from dbb_capture.capture.board import BoardSpec
 from dbb_capture.geometry.cameras import Intrinsics, project_points
 from dbb_capture.geometry.transforms import look_at
 from dbb_capture.cli.capture import main
-from dbb_capture.capture.footage import Frame
+from dbb_capture.capture.footage import FootageFrame
 from dbb_capture.poses.detect import Detection, detect_frames
 from dbb_capture.poses.calibrate import calibrate
 from dbb_capture.poses.solve import pose_frames
@@ -69,7 +69,7 @@ def test_real_photos_match_opencv_calibration(real_photos, tmp_path):
     # The occluded photo (a hand over the board) is still posed with these intrinsics.
     board = BoardSpec.from_json(REAL_BOARD)
     img = cv2.imread(str(shared_data("charuco_opencv", "chocclusion_original.jpg")), cv2.IMREAD_GRAYSCALE)
-    dets = detect_frames([Frame(0, 0.0, img, "occluded")], board)
+    dets = detect_frames([FootageFrame(0, 0.0, img, "occluded")], board)
     pose = pose_frames(dets, board, Intrinsics.from_json(cam))[0]
     assert pose.posed and pose.n_corners >= 10 and pose.reproj_px < 1.0
     assert pose.n_corners < len(board.chessboard_corners())   # part of the board really is hidden

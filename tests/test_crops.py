@@ -9,18 +9,9 @@ import pytest
 
 from dbb_capture.geometry.cameras import Intrinsics, project_points
 from dbb_capture.geometry.transforms import look_at
-from dbb_capture.crops.camera import (
-    at_output,
-    crop_camera,
-    crop_maps,
-    cut_crop,
-    follows_previous,
-    matte_scale,
-    object_crop,
-    premultiplied_down,
-    sequence_windows,
-    split_by_time,
-)
+from dbb_capture.crops.object import at_output, matte_scale, object_crop, premultiplied_down
+from dbb_capture.crops.camera import crop_camera, crop_maps, cut_crop
+from dbb_capture.crops.sequences import follows_previous, sequence_windows, split_by_time
 from dbb_capture.geometry.viewpoint import up_from_cameras, viewpoint
 from dbb_capture.synth.scene import SynthConfig, make_scene, render_object_rgba
 
@@ -177,21 +168,6 @@ def test_follows_previous_breaks_at_gaps():
     t = np.array([0.0, 0.1, 0.2, 0.5, 0.6, 0.7])        # frames 0.3 and 0.4 dropped
     assert follows_previous(t).tolist() == [False, True, True, False, True, True]
     assert follows_previous(np.array([1.0])).tolist() == [False]
-
-
-def test_crop_record_names_the_observed_crop_and_its_predicted_room():
-    """crops.json keeps what each matte was cut from (training composites over that room), and
-    says nothing for a crop that has no such files (one past the frame's border)."""
-    from dbb_capture.crops.camera import CropRecord
-
-    center = np.array([0.3, 0.2, -0.08])
-    cam = crop_camera(_camera(center, 30, 40, 0.6, 0), SRC, center, 0.1, UP)
-    with_room = CropRecord("crops/00001.png", cam, 1, 0.1, "train", observed_path="crops_observed/00001.png",
-                           background_path="crops_background/00001.png").to_json()
-    assert with_room["observed_path"] == "crops_observed/00001.png"
-    assert with_room["background_path"] == "crops_background/00001.png"
-    plain = CropRecord("crops/00002.png", cam, 2, 0.2, "test", touches_border=True).to_json()
-    assert "observed_path" not in plain and "background_path" not in plain
 
 
 def test_resized_crop_camera_sees_the_same_rays():

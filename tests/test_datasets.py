@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -13,15 +14,9 @@ from conftest import shared_data
 from dbb_capture.geometry.cameras import Intrinsics, project_points
 from dbb_capture.geometry.transforms import look_at
 from dbb_capture.geometry.conventions import opengl_from_opencv
-from dbb_capture.datasets.records import (
-    Frame,
-    ObjectVolume,
-    estimate_volume,
-    holdout_every,
-    load_dataset,
-    load_rgba,
-    write_transforms,
-)
+from dbb_capture.datasets.records import Frame, ObjectVolume, estimate_volume, holdout_every
+from dbb_capture.datasets.transforms import load_dataset, write_crops, write_transforms
+from dbb_capture.datasets.images import load_rgba
 from dbb_capture.geometry.rays import pixel_rays
 from dbb_capture.geometry.cameras import scaled_intrinsics
 from dbb_capture.core.errors import DbbError
@@ -94,8 +89,41 @@ def test_crops_json_split_volume_and_write_round_trip(tmp_path):
     assert [f.split for f in ds.frames] == ["train", "test", "train", "train"]
     assert ds.volume == ObjectVolume((0.1, 0.2, 0.3), 0.4)
     assert ds.frames[2].time == pytest.approx(0.2)
-    np.testing.assert_allclose(ds.frames[3].c2w, frames[3].c2w, atol=1e-12)
+    np.testing.assert_allclose(ds.frames[3].c2w, frames[3].c2w, atol=1e-9)     # written to 9 decimals
     assert [f.split for f in holdout_every(ds.frames, 2)] == ["test", "train", "test", "train"]
+
+
+def test_crops_json_names_each_crops_camera_source_and_predicted_room(tmp_path):
+    """crops.json keeps each crop's own camera, where it came from and what its matte was cut from
+    (training composites over that room), and says nothing of such files for a crop that has none
+    (one past the frame's border)."""
+    from dbb_capture.geometry.viewpoint import Viewpoint
+
+    crop = Intrinsics(32, 32, 40.0, 40.0, 15.5, 15.5)
+    frames = []
+    for i, c2w in enumerate(_poses(3)):
+        for sub in ("crops", "crops_observed", "crops_background"):
+            (tmp_path / sub).mkdir(exist_ok=True)
+            cv2.imwrite(str(tmp_path / sub / f"{i:05d}.png"), np.full((32, 32, 4), 200, np.uint8))
+        room = i != 2
+        frames.append(Frame(f"{i:05d}", tmp_path / "crops" / f"{i:05d}.png", c2w, replace(crop, fx=40.0 + i),
+                            "test" if i == 2 else "train", time=0.1 * i,
+                            observed_path=tmp_path / "crops_observed" / f"{i:05d}.png" if room else None,
+                            background_path=tmp_path / "crops_background" / f"{i:05d}.png" if room else None,
+                            source_frame=10 + i, viewpoint=Viewpoint(30.0 * i, 20.0, 0.5), touches_border=not room))
+    write_crops(tmp_path / "crops.json", frames, np.array([0.1, 0.2, 0.3]), 0.4, np.array([0.0, 0.0, -1.0]), 32, 0.9,
+                2, [(0, "train")])
+    doc = json.loads((tmp_path / "crops.json").read_text())
+    assert doc["frames"][0]["observed_path"] == "crops_observed/00000.png"
+    assert doc["frames"][0]["background_path"] == "crops_background/00000.png"
+    assert "observed_path" not in doc["frames"][2] and doc["frames"][2]["touches_border"] is True
+    assert "fl_x" not in doc and doc["w"] == 32 and doc["sequences"] == [{"start": 0, "split": "train"}]
+    ds = load_dataset(tmp_path)
+    assert [f.intr.fx for f in ds.frames] == [40.0, 41.0, 42.0]
+    assert [f.source_frame for f in ds.frames] == [10, 11, 12]
+    assert ds.frames[1].viewpoint == Viewpoint(30.0, 20.0, 0.5) and ds.frames[2].touches_border
+    assert ds.frames[0].observed_path == tmp_path / "crops_observed" / "00000.png" and ds.frames[2].observed_path is None
+    assert ds.volume == ObjectVolume((0.1, 0.2, 0.3), 0.4)
 
 
 def test_rays_pass_through_projected_points_with_distortion():

@@ -14,7 +14,7 @@ from click.testing import CliRunner
 
 from dbb_capture.cli.capture import main
 from dbb_capture.core.errors import DbbError, InputError
-from dbb_capture.capture.footage import (Frame, ImageFolderSource, R3dSource, RawFolderSource, VideoSource, blurry_mask,
+from dbb_capture.capture.footage import (FootageFrame, ImageFolderSource, R3dSource, RawFolderSource, VideoSource, blurry_mask,
                             open_footage, sample_indices, sharpness)
 
 
@@ -148,7 +148,7 @@ def test_prefetched_keeps_order_and_raises_decoder_errors():
 
     def gen():
         for i in range(10):
-            yield Frame(i, i / 10, np.zeros((2, 2), np.uint8), str(i))
+            yield FootageFrame(i, i / 10, np.zeros((2, 2), np.uint8), str(i))
         raise InputError("broken at 10")
 
     got = []

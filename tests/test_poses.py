@@ -21,7 +21,7 @@ from dbb_capture.geometry.conventions import opencv_from_opengl
 from dbb_capture.geometry.cameras import project_points
 from dbb_capture.cli.capture import main
 from dbb_capture.core.errors import DbbError
-from dbb_capture.capture.footage import Frame
+from dbb_capture.capture.footage import FootageFrame
 from dbb_capture.poses.detect import (
     BoardDetector,
     Detection,
@@ -89,7 +89,7 @@ def test_fast_path_agrees_with_plain_detection(rendered):
     intr, views = rendered
     plain = DetectorConfig(max_side=10_000, track=False, refine=False)
     fast = DetectorConfig(max_side=240, track=True, refine=True)
-    frames = [Frame(i, i / 10, g, f"{i:05d}") for i, (_, g) in enumerate(views)]
+    frames = [FootageFrame(i, i / 10, g, f"{i:05d}") for i, (_, g) in enumerate(views)]
     frames = frames + frames[::-1]  # revisit views so the tracked region is used and must move
     a = detect_frames(frames, BOARD, plain)
     b = detect_frames(frames, BOARD, fast)
@@ -141,7 +141,7 @@ def test_flipped_solution_is_resolved_and_jumps_rejected():
 
 def test_gates(rendered):
     intr, views = rendered
-    dets = detect_frames([Frame(0, 0.0, views[1][1], "a")], BOARD)
+    dets = detect_frames([FootageFrame(0, 0.0, views[1][1], "a")], BOARD)
     d = dets[0]
     few = type(d)(1, 0.1, "b", d.ids[:3], d.corners[:3], 2, 1.0)
     none = type(d)(2, 0.2, "c", d.ids[:0], d.corners[:0], 0, 1.0)
@@ -416,7 +416,7 @@ def test_joint_refinement_keeps_the_calibrations_distortion_terms(rendered):
     """Terms the calibration left out (k3, p1, p2) stay 0 in the bundle adjustment; all five move
     when all five were fitted."""
     intr, views = rendered
-    dets = detect_frames([Frame(k, k / 10, g, f"{k:05d}") for k, (_, g) in enumerate(views)], BOARD)
+    dets = detect_frames([FootageFrame(k, k / 10, g, f"{k:05d}") for k, (_, g) in enumerate(views)], BOARD)
     poses = pose_frames(dets, BOARD, intr)
     assert sum(p.posed for p in poses) == len(views)
     kept, _, rms = refine_jointly(dets, poses, BOARD, intr, True, "k1 k2")

@@ -432,7 +432,7 @@ def training_size(cfg: BackgroundConfig, matte_px: int, crop_fill: float, window
 
 
 @dataclass(frozen=True)
-class PosedView:
+class TrainingView:
     """A source frame to learn from: RGB (H, W, 3) uint8, its (possibly distorted) camera, OpenCV c2w."""
 
     image: np.ndarray
@@ -440,7 +440,7 @@ class PosedView:
     c2w: np.ndarray
 
 
-def view_rays(view: PosedView, center: np.ndarray, radius: float, up: np.ndarray, size: int, fill: float,
+def view_rays(view: TrainingView, center: np.ndarray, radius: float, up: np.ndarray, size: int, fill: float,
               drop_sphere: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One frame's training rays: its crop window cut at ``size`` pixels (pure function).
 
@@ -475,7 +475,7 @@ class RayBank:
         return int(self.rgb.shape[0])
 
 
-def build_bank(views: Iterable[PosedView], center: np.ndarray, radius: float, up: np.ndarray,
+def build_bank(views: Iterable[TrainingView], center: np.ndarray, radius: float, up: np.ndarray,
                cfg: BackgroundConfig, drop_sphere: bool,
                tick: Callable[[], None] | None = None, allow_empty: bool = False) -> RayBank:
     parts = []
@@ -504,7 +504,7 @@ def with_env_depth(fld: LayerField, bank: RayBank, n_depths: int) -> LayerField:
 
 
 # --------------------------------------------------------------------------- photo-consistency start
-def photo_init(fld: LayerField, views: list[PosedView], exclude_radius: float | None = None,
+def photo_init(fld: LayerField, views: list[TrainingView], exclude_radius: float | None = None,
                max_views: int = 24, sharpness: float = 0.04) -> LayerField:
     """Plane sweep: every layer texel takes the mean colour of its point seen in up to
     ``max_views`` views, and an opacity that is high where those colours agree (a surface) and
@@ -726,12 +726,12 @@ def parallax_coverage(c2ws: np.ndarray, center: np.ndarray, radius: float, up: n
     return float(np.median(fractions)) if fractions else 0.0
 
 
-def train_background(views: Iterable[PosedView], n_views: int, center: np.ndarray, radius: float,
+def train_background(views: Iterable[TrainingView], n_views: int, center: np.ndarray, radius: float,
                      up: np.ndarray, clean_plate: bool, cfg: BackgroundConfig = BackgroundConfig(),
                      device: torch.device | str = "cpu",
                      on_step: Callable[[TrainLog, float], None] | None = None,
                      tick: Callable[[], None] | None = None,
-                     room_views: Iterable[PosedView] = ()) -> BackgroundModel:
+                     room_views: Iterable[TrainingView] = ()) -> BackgroundModel:
     """Train the background field from ``n_views`` posed views of the clean plate (``clean_plate``)
     or of the object video (rays through the object's sphere are then left out).
 
@@ -746,7 +746,7 @@ def train_background(views: Iterable[PosedView], n_views: int, center: np.ndarra
     frames for the plane sweep are kept, so long 4K footage does not fill the memory.
     """
     keep = set(np.linspace(0, max(n_views - 1, 0), min(24, max(n_views, 1))).round().astype(int).tolist())
-    init_views: list[PosedView] = []
+    init_views: list[TrainingView] = []
     c2ws = []
 
     def stream():

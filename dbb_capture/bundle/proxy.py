@@ -227,7 +227,8 @@ def dynamic_proxy(crops_json: Path, center: np.ndarray, radius: float, T: np.nda
     matte (alpha > 0.5) in at least ``agree`` of the views that see it; a moving object thus
     keeps what it occupies most of the time.
     """
-    from ..datasets.records import load_dataset, load_rgba
+    from ..datasets.transforms import load_dataset
+    from ..datasets.images import load_rgba
 
     center = np.asarray(center, float)
     try:

@@ -31,7 +31,7 @@ DEFAULT_IMAGE_FPS = 10.0  # time step given to image folders, which carry no clo
 
 
 @dataclass(frozen=True)
-class Frame:
+class FootageFrame:
     """One decoded frame: ``image`` (H, W, 3) RGB uint8/uint16 or (H, W) grey; ``time`` in seconds."""
 
     index: int          # position in the source (0-based)
@@ -75,7 +75,7 @@ class FootageSource:
     def _probe(self) -> FootageInfo:
         raise NotImplementedError
 
-    def read(self, indices: Sequence[int], gray: bool = False) -> Iterator[Frame]:
+    def read(self, indices: Sequence[int], gray: bool = False) -> Iterator[FootageFrame]:
         """Frames at increasing source ``indices`` (grey uint8 (H, W) when ``gray``)."""
         raise NotImplementedError
 
@@ -149,7 +149,7 @@ class VideoSource(FootageSource):
             (len(times) - 1) / times[-1] if len(times) > 1 and times[-1] > 0 else 30.0)
         return FootageInfo(self.kind, self.path, w, h, fps, times)
 
-    def read(self, indices: Sequence[int], gray: bool = False) -> Iterator[Frame]:
+    def read(self, indices: Sequence[int], gray: bool = False) -> Iterator[FootageFrame]:
         import av
 
         info = self.info
@@ -176,7 +176,7 @@ class VideoSource(FootageSource):
                 if want[j] != k:
                     continue
                 img = _luma(frame) if gray else frame.to_ndarray(format="rgb24")
-                yield Frame(k, float(info.times[k]), _rotate(img, self._rotation), f"{k:05d}")
+                yield FootageFrame(k, float(info.times[k]), _rotate(img, self._rotation), f"{k:05d}")
                 j += 1
                 if j >= len(want):
                     break
@@ -210,7 +210,7 @@ class _FileListSource(FootageSource):
     def _load(self, path: Path) -> np.ndarray:
         raise NotImplementedError
 
-    def read(self, indices: Sequence[int], gray: bool = False) -> Iterator[Frame]:
+    def read(self, indices: Sequence[int], gray: bool = False) -> Iterator[FootageFrame]:
         info = self.info
         for i in sorted(set(int(i) for i in indices)):
             img = self._load(self.files[i])
@@ -219,7 +219,7 @@ class _FileListSource(FootageSource):
                                  f"the first frame's {info.width}x{info.height}")
             if gray:
                 img = to_gray8(img)
-            yield Frame(i, float(info.times[i]), img, self.files[i].stem)
+            yield FootageFrame(i, float(info.times[i]), img, self.files[i].stem)
 
 
 class ImageFolderSource(_FileListSource):
@@ -286,12 +286,12 @@ class R3dSource(FootageSource):
             raise InputError(f"{self.path}: cannot decode {name}")
         return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
-    def read(self, indices: Sequence[int], gray: bool = False) -> Iterator[Frame]:
+    def read(self, indices: Sequence[int], gray: bool = False) -> Iterator[FootageFrame]:
         info = self.info
         with zipfile.ZipFile(self.path) as z:
             for i in sorted(set(int(i) for i in indices)):
                 img = self._decode(self.jpgs[i], z)
-                yield Frame(i, float(info.times[i]), to_gray8(img) if gray else img, f"{i:05d}")
+                yield FootageFrame(i, float(info.times[i]), to_gray8(img) if gray else img, f"{i:05d}")
 
     def intrinsics(self) -> Intrinsics:
         """The export's K (9 values, column-major), scaled from the depth/meta size to the jpgs."""
@@ -353,7 +353,7 @@ def capture_footage(capture: Path) -> FootageSource:
     raise InputError(f"{capture}: no footage found (expected video.mp4/video.mov, frames/, raw/ or a .r3d)")
 
 
-def prefetched(frames: Iterator[Frame], depth: int = 4) -> Iterator[Frame]:
+def prefetched(frames: Iterator[FootageFrame], depth: int = 4) -> Iterator[FootageFrame]:
     """Decode ahead in a thread (PyAV and OpenCV release the GIL), so decoding the next frames
     overlaps work on this one; exceptions of the decoder are raised here, in order."""
     import queue

@@ -22,3 +22,14 @@ def resize_rgba(rgba: np.ndarray, size: int) -> np.ndarray:
     pm = cv2.resize(pm, (size, size), interpolation=interp)
     a = pm[..., 3:4]
     return np.concatenate([np.where(a > 1e-6, pm[..., :3] / np.maximum(a, 1e-6), 0.0).clip(0, 1), a], -1)
+
+
+def write_image(path, img: np.ndarray) -> None:
+    """Write ``img`` (H, W) grey or (H, W, 3|4) in OpenCV's BGR(A) order as a PNG (fast
+    compression); an unwritable path is a :class:`~.errors.DbbError`."""
+    import cv2
+
+    from .errors import DbbError
+
+    if not cv2.imwrite(str(path), img, [cv2.IMWRITE_PNG_COMPRESSION, 1]):
+        raise DbbError(f"cannot write {path}")

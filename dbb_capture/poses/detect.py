@@ -224,7 +224,7 @@ def _region(corners: np.ndarray, marker_corners, size: tuple[int, int]) -> tuple
 
 def detect_frames(frames, board: BoardSpec, cfg: DetectorConfig = DetectorConfig(),
                   tick: Callable[[], None] | None = None) -> list[Detection]:
-    """Detect the board in an iterable of :class:`Frame` (grey or RGB), in order (tracking)."""
+    """Detect the board in an iterable of :class:`~..capture.footage.FootageFrame` (grey or RGB), in order (tracking)."""
     det = BoardDetector(board, cfg)
     out = []
     for f in frames:

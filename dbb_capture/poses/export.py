@@ -1,70 +1,30 @@
-"""Writers of the pose stage's files: nerfstudio ``transforms.json``, a COLMAP sparse model
-(pycolmap) and the pose report (JSON and a PNG of the camera path around the board).
+"""Writers of the pose stage's own files: a COLMAP sparse model (pycolmap) and the pose report
+(JSON and a PNG of the camera path around the board). ``transforms.json`` is written by
+:func:`..datasets.transforms.write_transforms`.
 
-Poses come in as OpenCV camera-to-world (board frame, metres); the OpenGL conversion for
-``transforms.json`` goes through :func:`dbb_capture.geometry.cameras.opengl_from_opencv` and COLMAP's
-pixel convention (top-left pixel centre at (0.5, 0.5)) is applied here, at the file boundary.
+Poses come in as OpenCV camera-to-world (board frame, metres); COLMAP's pixel convention
+(top-left pixel centre at (0.5, 0.5)) comes from :mod:`..geometry.conventions`.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
-import cv2
 import numpy as np
 
 from ..capture.board import BoardSpec
+from ..datasets.records import Frame
+from ..datasets.transforms import relative_path
 from ..geometry.cameras import Intrinsics
+from ..geometry.conventions import colmap_from_opencv_px
 from ..geometry.transforms import invert_rigid
-from ..geometry.conventions import opengl_from_opencv
-from ..core.outputs import write_json
 from .run import PoseRun
 
 
-@dataclass(frozen=True)
-class PosedImage:
-    """An image file of the dataset and its camera: ``c2w`` (4, 4) OpenCV, board frame, metres."""
-
-    file_path: str       # relative to the dataset folder
-    c2w: np.ndarray
-    time: float
-
-
-class Undistorter:
-    """Remaps frames of ``intr`` to the same pinhole without distortion (same size, same K)."""
-
-    def __init__(self, intr: Intrinsics):
-        self.intr = intr
-        self.target = intr.undistorted()
-        self._maps = None
-        if intr.distorted:
-            self._maps = cv2.initUndistortRectifyMap(intr.K, intr.dist_array, None, intr.K,
-                                                     (intr.width, intr.height), cv2.CV_16SC2)
-
-    def __call__(self, img: np.ndarray) -> np.ndarray:
-        """(H, W, C) image -> undistorted (H, W, C); pixels with no source stay black."""
-        if self._maps is None:
-            return img
-        return cv2.remap(img, self._maps[0], self._maps[1], cv2.INTER_LINEAR,
-                         borderMode=cv2.BORDER_CONSTANT)
-
-
-def transforms_dict(intr: Intrinsics, images: Sequence[PosedImage], extra: dict | None = None) -> dict:
-    """nerfstudio ``transforms.json`` content: shared intrinsics, OpenGL c2w and ``time`` per frame."""
-    frames = [{"file_path": im.file_path,
-               "transform_matrix": opengl_from_opencv(im.c2w).round(10).tolist(),
-               "time": round(float(im.time), 6)} for im in images]
-    return {**intr.nerfstudio_fields(), **(extra or {}), "frames": frames}
-
-
-def write_transforms(path: Path, intr: Intrinsics, images: Sequence[PosedImage], extra: dict | None = None) -> None:
-    write_json(path, transforms_dict(intr, images, extra))
-
-
-def write_colmap(folder: Path, intr: Intrinsics, images: Sequence[PosedImage]) -> None:
-    """A COLMAP sparse model (cameras, rigs, frames, images; no points) in ``folder``.
+def write_colmap(folder: Path, intr: Intrinsics, frames: Sequence[Frame], root: Path) -> None:
+    """A COLMAP sparse model (cameras, rigs, frames, images; no points) in ``folder``, image names
+    relative to the dataset folder ``root``.
 
     Camera model OPENCV (PINHOLE when undistorted); principal point shifted by +0.5 px.
     """
@@ -73,7 +33,7 @@ def write_colmap(folder: Path, intr: Intrinsics, images: Sequence[PosedImage]) -
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     rec = pycolmap.Reconstruction()
-    cx, cy = intr.cx + 0.5, intr.cy + 0.5
+    cx, cy = colmap_from_opencv_px(intr.cx), colmap_from_opencv_px(intr.cy)
     if intr.distorted:
         k1, k2, p1, p2, _ = (float(v) for v in intr.dist_array)
         cam = pycolmap.Camera(model="OPENCV", width=intr.width, height=intr.height,
@@ -82,9 +42,9 @@ def write_colmap(folder: Path, intr: Intrinsics, images: Sequence[PosedImage]) -
         cam = pycolmap.Camera(model="PINHOLE", width=intr.width, height=intr.height,
                               params=[intr.fx, intr.fy, cx, cy], camera_id=1)
     rec.add_camera_with_trivial_rig(cam)
-    for i, im in enumerate(images, start=1):
-        w2c = invert_rigid(im.c2w)
-        image = pycolmap.Image(name=im.file_path, camera_id=1, image_id=i)
+    for i, f in enumerate(frames, start=1):
+        w2c = invert_rigid(f.c2w)
+        image = pycolmap.Image(name=relative_path(f.image_path, root), camera_id=1, image_id=i)
         rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(w2c[:3, :4]))
     rec.write(str(folder))
 

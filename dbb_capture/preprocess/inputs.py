@@ -1,0 +1,106 @@
+"""What a preprocess run starts from: the capture's parts, the options, and what every stage sees."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ..background.field import BackgroundConfig
+from ..capture.board import BoardSpec
+from ..capture.footage import FootageSource, R3dSource, capture_footage, open_footage
+from ..core.errors import DbbError, InputError
+from ..crops.matte import MatteConfig
+from ..geometry.cameras import Intrinsics
+from ..poses.detect import DetectorConfig
+from ..poses.solve import PoseConfig
+
+
+@dataclass(frozen=True)
+class CaptureInputs:
+    """Where a capture's parts are. ``camera`` is None when intrinsics must be calibrated."""
+
+    root: Path
+    footage: FootageSource
+    board: BoardSpec | None          # None only in fixed-camera mode (no board needed)
+    camera: Intrinsics | None
+    camera_source: str
+    object_json: Path | None
+    background: Path | None
+
+
+def resolve_capture(capture: Path, board: Path | None = None, camera: Path | None = None,
+                    footage: Path | None = None, object_json: Path | None = None,
+                    background: Path | None = None, need_board: bool = True) -> CaptureInputs:
+    """Find the parts of a capture folder (flags override the files inside it)."""
+    capture = Path(capture)
+    if not capture.is_dir():
+        raise InputError(f"capture folder not found: {capture}")
+    src = open_footage(footage) if footage else capture_footage(capture)
+    src.info  # probe now: unreadable footage fails before any work starts
+    board_spec = None
+    if need_board or board is not None or (capture / "board.json").is_file():
+        board_spec = BoardSpec.load(board or capture / "board.json")
+    cam_path = camera or (capture / "camera.json" if (capture / "camera.json").is_file() else None)
+    intr, cam_src = None, "calibrated from the footage"
+    if cam_path is not None:
+        intr, cam_src = Intrinsics.load(cam_path), str(cam_path)
+    elif isinstance(src, R3dSource):
+        intr, cam_src = src.intrinsics(), "Record3D metadata"
+    obj = object_json or (capture / "object.json" if (capture / "object.json").is_file() else None)
+    if background is None:
+        for cand in ("background.mp4", "background.mov", "background"):
+            if (capture / cand).exists():
+                background = capture / cand
+                break
+    return CaptureInputs(capture, src, board_spec, intr, cam_src, obj, background)
+
+
+@dataclass(frozen=True)
+class PreprocessConfig:
+    """Options of a run. ``fps``: resample the footage (None: every frame)."""
+
+    fps: float | None = None
+    blur_ratio: float = 0.4
+    refine: bool = False
+    workers: int = 1
+    stop_after: str | None = None
+    detector: DetectorConfig = DetectorConfig()
+    gates: PoseConfig = PoseConfig()
+    crop_size: int = 64
+    crop_fill: float = 0.9
+    test_fraction: float = 0.2
+    sequence_length: int = 11
+    use_clean_plate: bool = True          # False: learn the room from the object video even if a plate exists
+    fixed_window: tuple[int, int, int] | None = None   # fixed camera: crop window (x, y, side) in pixels
+    fixed_matte: bool = True              # fixed camera: matte against the background (False: opaque crops)
+    background: BackgroundConfig = BackgroundConfig()
+    matte: MatteConfig = MatteConfig()
+
+    def validate(self) -> None:
+        if not 16 <= self.crop_size <= 1024:
+            raise DbbError(f"--crop-size {self.crop_size}: expected 16..1024 pixels")
+        if not 0.2 <= self.crop_fill <= 1.0:
+            raise DbbError(f"--crop-fill {self.crop_fill}: expected 0.2..1")
+        if not 0.0 <= self.test_fraction < 1.0:
+            raise DbbError(f"--test-fraction {self.test_fraction}: expected 0 <= f < 1")
+        if self.sequence_length < 2:
+            raise DbbError("--sequence-length must be at least 2 (1 context + 1 predicted frame)")
+        self.background.validate()
+
+
+@dataclass
+class StageContext:
+    """What every stage sees: the inputs, the options and the dataset folder being written."""
+
+    inputs: CaptureInputs
+    cfg: PreprocessConfig
+    out: Path
+    notes: list[str] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class Stage:
+    name: str
+    run: Callable[[StageContext, Any], Any]

@@ -1,0 +1,94 @@
+"""The poses stage: footage -> undistorted frames, ``transforms.json``, ``camera.json``, a COLMAP
+model and the pose report (:mod:`..poses`)."""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from ..capture.footage import R3dSource
+from ..core.errors import DbbError
+from ..core.outputs import write_json
+from ..core.progress import progress
+from ..datasets.records import Frame
+from ..datasets.transforms import write_transforms
+from ..geometry.cameras import Intrinsics
+from ..geometry.undistort import Undistorter
+from ..poses.export import plot_camera_path, pose_report, write_colmap
+from ..poses.run import PoseRun, estimate_poses
+from .inputs import StageContext
+
+
+@dataclass(frozen=True)
+class PosesOutput:
+    """The poses stage's record: the dataset's (undistorted) camera and its posed images."""
+
+    transforms: Path
+    intrinsics: Intrinsics           # of the undistorted frames
+    images: tuple[Frame, ...]        # the undistorted frames (images/) and their poses
+    up: tuple[float, float, float]   # the board normal on the cameras' side
+    run: PoseRun
+
+
+def poses_stage(ctx: StageContext, _previous: Any = None) -> PosesOutput:
+    """Footage -> poses; writes images/, transforms.json, camera.json, colmap/sparse/0, poses/."""
+    inp, cfg, out = ctx.inputs, ctx.cfg, ctx.out
+    with progress(transient=True) as prog:
+        task = prog.add_task("detect board", total=None, info="")
+        run = estimate_poses(
+            inp.footage, inp.board, inp.camera, fps=cfg.fps, blur_ratio=cfg.blur_ratio,
+            refine=cfg.refine, workers=cfg.workers, det_cfg=cfg.detector, pose_cfg=cfg.gates,
+            tick=lambda n: prog.advance(task, n), total=lambda n: prog.update(task, total=n),
+            intr_source=inp.camera_source,
+            device_c2w=inp.footage.arkit_c2w_opencv() if isinstance(inp.footage, R3dSource) else None)
+        posed = run.posed
+        undistort = Undistorter(run.intrinsics)
+        intr = undistort.target
+        (out / "images").mkdir()
+        task = prog.add_task("write undistorted frames", total=len(posed), info="")
+        images = []
+        by_index = {p.index: p for p in posed}
+        for f in inp.footage.read(sorted(by_index)):
+            p = by_index[f.index]
+            rel = f"images/{f.name}.png"
+            img = undistort(f.image)
+            bgr = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
+            if not cv2.imwrite(str(out / rel), bgr, [cv2.IMWRITE_PNG_COMPRESSION, 1]):
+                raise DbbError(f"cannot write {out / rel}")
+            images.append(Frame(f.name, out / rel, p.c2w, intr, time=p.time))
+            prog.advance(task)
+    # "Up" is the board normal on the cameras' side, read from the poses, never assumed.
+    side = np.sign(np.median([im.c2w[2, 3] for im in images])) or -1.0
+    up = (0.0, 0.0, float(side))
+    write_frames(out / "transforms.json", images, up)
+    cam = run.intrinsics.to_json()
+    if run.calibration is not None:
+        cam["rms"] = round(run.calibration.rms, 4)
+    write_json(out / "camera.json", cam)
+    write_colmap(out / "colmap" / "sparse" / "0", intr, images, out)
+    write_json(out / "poses" / "report.json", pose_report(run, inp.board))
+    plot_camera_path(run, inp.board, out / "poses" / "camera_path.png")
+    write_json(out / "board.json", inp.board.to_json())
+    if inp.object_json is not None:
+        shutil.copyfile(inp.object_json, out / "object.json")
+    else:
+        ctx.notes.append("no object.json in the capture: later stages must estimate the object's sphere")
+    skipped = [p for p in run.frames if not p.posed]
+    if skipped:
+        why: dict[str, list[str]] = {}
+        for p in skipped:
+            why.setdefault(p.status, []).append(p.name)
+        ctx.notes.append(f"{len(skipped)} of {len(run.frames)} frames skipped: " + "; ".join(
+            f"{k} ({len(v)}: {', '.join(v[:6])}{' ...' if len(v) > 6 else ''})" for k, v in sorted(why.items())))
+    return PosesOutput(out / "transforms.json", intr, tuple(images), up, run)
+
+
+def write_frames(path: Path, frames: list[Frame], up: tuple[float, float, float]) -> None:
+    """The full frames' ``transforms.json`` (shared undistorted camera, the scene's up)."""
+    write_transforms(path, frames, extra={"up": list(up), "note": "OpenGL camera-to-world, ChArUco board frame, metres; "
+                                                           "frames undistorted"})
