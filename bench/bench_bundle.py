@@ -84,12 +84,12 @@ def bench_static(run: Path, out: Path, capture: Path | None, seed: int, res: int
     m = B.make_bundle(run, out / "bundle", overwrite=True)
     bundle_s = time.perf_counter() - t
     if capture is not None:
-        from dbb_capture.synth.scene import load_ground_truth
+        from dbb_capture.synth.capture import load_ground_truth
 
         model = load_ground_truth(capture)[2]
     else:
         from dbb_capture.capture.board import BoardSpec
-        from dbb_capture.synth.scene import make_object
+        from dbb_capture.synth.objects import make_object
 
         model = make_object("static", BoardSpec(7, 5, 0.05, 0.0375, "DICT_5X5_100"), np.random.default_rng(seed))
     # Voxelise both over the object's cube in the board frame.
@@ -136,9 +136,10 @@ def bench_static(run: Path, out: Path, capture: Path | None, seed: int, res: int
 
 
 def hull_iou(m, bundle: Path, times: np.ndarray, seed: int, res: int) -> dict:
-    """IoU of the proxy with the synthetic dynamic toy (``rssm.synthetic_crops``' object, ``seed``):
+    """IoU of the proxy with the synthetic dynamic toy (``synth.crops.synthetic_crops``' object, ``seed``):
     against what it occupies in >= 90 % of the frame times (what the carving keeps), and at t = 0."""
-    from dbb_capture.synth.scene import SynthConfig, make_object
+    from dbb_capture.synth.scene import SynthConfig
+    from dbb_capture.synth.objects import make_object
 
     model = make_object("dynamic", SynthConfig().board, np.random.default_rng(seed))
     c, r = m.center, m.radius
@@ -157,7 +158,7 @@ def hull_iou(m, bundle: Path, times: np.ndarray, seed: int, res: int) -> dict:
 
 
 def bench_dynamic(run: Path, out: Path, seed: int | None, res: int) -> dict:
-    from dbb_capture.dynamic.rssm import rollout
+    from dbb_capture.dynamic.stepper import rollout
 
     out.mkdir(parents=True, exist_ok=True)
     t = time.perf_counter()
@@ -205,7 +206,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--capture", type=Path, default=None, help="synthetic capture whose ground truth is the shape")
     ap.add_argument("--seed", type=int, default=None,
                     help="seed of the synthetic object: bench_plenoctree's static one (default 0), or "
-                         "rssm.synthetic_crops' dynamic toy (dynamic: IoU of the visual hull only when given)")
+                         "synth.crops.synthetic_crops' dynamic toy (dynamic: IoU of the visual hull only when given)")
     ap.add_argument("--res", type=int, default=128, help="voxels per axis for the IoU")
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args(argv)

@@ -96,7 +96,8 @@ def accuracy(work: Path, seconds: float, fps: float, cases: list[int] | None = N
     the table's captures; other seeds render further captures with the same settings);
     ``refine``: also self-calibrated with ``--refine``; ``path_window``: the poses' fusion with the
     camera path (``PoseConfig.path_window``; 0: off; None: the default)."""
-    from dbb_capture.synth.scene import SynthConfig, load_ground_truth, write_capture
+    from dbb_capture.synth.scene import SynthConfig
+    from dbb_capture.synth.capture import load_ground_truth, write_capture
 
     rows = []
     cases = list(range(len(CASES))) if cases is None else cases
@@ -169,7 +170,8 @@ def _cpu_seconds() -> float:
 def speed(work: Path, seconds: float, repeats: int) -> None:
     import cv2
 
-    from dbb_capture.synth.scene import SynthConfig, load_ground_truth, write_capture
+    from dbb_capture.synth.scene import SynthConfig
+    from dbb_capture.synth.capture import load_ground_truth, write_capture
 
     cap = work / "speed1920"
     board = BoardSpec(7, 5, 0.05, 0.0375, "DICT_5X5_100")
@@ -224,7 +226,7 @@ def calibration(work: Path) -> None:
     """`dbb-capture calibrate` on the accuracy captures (rendered by ``accuracy``): OpenCV's
     calibration (the default) against ``--precise``, errors against the true intrinsics."""
     from dbb_capture.poses.calibrate import calibrate_footage
-    from dbb_capture.synth.scene import load_ground_truth
+    from dbb_capture.synth.capture import load_ground_truth
 
     print("| capture | default: fx / fy err, cx / cy err (px), RMS px | `--precise`: same |")
     print("|---|---|---|")

@@ -149,7 +149,7 @@ def rematte(capture: Path, dataset: Path) -> tuple[Path, Path]:
     dataset (``-first``, ``-two``) and returns them."""
     import shutil
 
-    from dbb_capture.background.field import BackgroundModel
+    from dbb_capture.background.model import BackgroundModel
     from dbb_capture.crops.object import at_output, matte_scale, object_crop
     from dbb_capture.crops.camera import crop_windows
     from dbb_capture.capture.footage import open_footage
@@ -208,7 +208,7 @@ def budget_crops(capture: Path, cache: Path, size: int = 64, fill: float = 0.9, 
     ``score`` compares with); ``times`` (N,) s."""
     from dbb_capture.crops.camera import crop_camera
     from dbb_capture.capture.footage import open_footage
-    from dbb_capture.synth.scene import Renderer
+    from dbb_capture.synth.render import Renderer
 
     if cache.is_file():
         with np.load(cache) as z:
@@ -349,7 +349,7 @@ def quality(work: Path, captures: list[Path], minutes: float, rescore: bool = Fa
 
 
 def speed(work: Path, minutes: float) -> None:
-    from dbb_capture.background.field import BackgroundModel
+    from dbb_capture.background.model import BackgroundModel
     from dbb_capture.capture.board import BoardSpec
     from dbb_capture.crops.object import at_output, object_crop, rematte, voted_rgba
     from dbb_capture.geometry.viewpoint import up_from_cameras

@@ -73,7 +73,8 @@ def synth(out: Path, kind: str, seconds: float, background_seconds: float | None
     and ground_truth/ (intrinsics, per-frame poses, object masks, the object's model).
     """
     from dbb_capture.capture.board import BoardSpec
-    from dbb_capture.synth.scene import SynthConfig, write_capture
+    from dbb_capture.synth.scene import SynthConfig
+    from dbb_capture.synth.capture import write_capture
 
     try:
         w, h = (int(v) for v in resolution.lower().split("x"))
@@ -215,7 +216,7 @@ def preprocess(capture: Path, output: Path, board_path: Path | None, camera_path
     """
     from dataclasses import replace
 
-    from dbb_capture.background.field import BackgroundConfig
+    from dbb_capture.background.config import BackgroundConfig
     from dbb_capture.preprocess.inputs import PreprocessConfig, resolve_capture
     from dbb_capture.preprocess.run import run_preprocess
 
@@ -229,7 +230,7 @@ def preprocess(capture: Path, output: Path, board_path: Path | None, camera_path
                                      param_hint="--crop-window") from None
     inputs = resolve_capture(capture, board_path, camera_path, footage, object_path, background,
                              need_board=window is None)
-    cfg = PreprocessConfig(fps=fps, blur_ratio=blur_ratio, refine=refine, fixed_window=window, fixed_matte=fixed_matte,
+    cfg = PreprocessConfig(fps=fps, blur_ratio=blur_ratio, refine=refine, crop_window=window, fixed_matte=fixed_matte,
                            workers=_workers(workers), stop_after=stop_after, crop_size=crop_size,
                            crop_fill=crop_fill, test_fraction=test_fraction, sequence_length=sequence_length,
                            use_clean_plate=clean_plate,

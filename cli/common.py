@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import sys
+from collections.abc import Callable
 
 import click
+from rich.markup import escape
 
 from dbb_capture.core.errors import DbbError
 from dbb_capture.core.progress import console
@@ -26,11 +28,19 @@ class DbbGroup(click.Group):
             console.print(f"[red]error:[/red] {where}: {e.format_message()}", soft_wrap=True)
             sys.exit(2)
         except DbbError as e:
-            console.print(f"[red]error:[/red] {e}", soft_wrap=True)
+            console.print(f"[red]error:[/red] {escape(e.worded(self._flag_words(args)))}", soft_wrap=True)
             sys.exit(2)
         if isinstance(rv, int) and rv != 0:
             sys.exit(rv)
         sys.exit(0)
+
+    def _flag_words(self, args) -> Callable[[str], str]:
+        """How this command words the library's settings: as its own option (``crop_size`` ->
+        ``--crop-size``) where the command has one, else by the setting's name."""
+        argv = list(sys.argv[1:] if args is None else args)
+        cmd = next((self.commands[a] for a in argv if a in self.commands), None)
+        flags = {p.name: p.opts[0] for p in (cmd.params if cmd else []) if isinstance(p, click.Option)}
+        return lambda name: flags.get(name, name)
 
 
 overwrite_option = click.option(

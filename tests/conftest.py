@@ -21,7 +21,8 @@ def shared_data(*parts: str) -> Path:
 @pytest.fixture(scope="session")
 def tiny_static_capture(tmp_path_factory) -> Path:
     """A 2-second 320x240 static capture with clean plate, rendered once per test session."""
-    from dbb_capture.synth.scene import SynthConfig, write_capture
+    from dbb_capture.synth.scene import SynthConfig
+    from dbb_capture.synth.capture import write_capture
 
     out = tmp_path_factory.mktemp("captures") / "static"
     write_capture(SynthConfig(kind="static", seconds=2.0, fps=5, width=320, height=240,
@@ -32,7 +33,8 @@ def tiny_static_capture(tmp_path_factory) -> Path:
 @pytest.fixture(scope="session")
 def tiny_dynamic_capture(tmp_path_factory) -> Path:
     """A 3-second 320x240 dynamic capture (no clean plate), rendered once per test session."""
-    from dbb_capture.synth.scene import SynthConfig, write_capture
+    from dbb_capture.synth.scene import SynthConfig
+    from dbb_capture.synth.capture import write_capture
 
     out = tmp_path_factory.mktemp("captures") / "dynamic"
     write_capture(SynthConfig(kind="dynamic", seconds=3.0, fps=5, width=320, height=240,

@@ -10,8 +10,10 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from dbb_capture.background.field import (BackgroundConfig, LayerField, TrainingView, RayBank, new_field, parallax_coverage,
-                                    train_background, training_size)
+from dbb_capture.background.config import BackgroundConfig, training_size
+from dbb_capture.background.field import LayerField
+from dbb_capture.background.rays import TrainingView, RayBank
+from dbb_capture.background.train import new_field, parallax_coverage, train_background
 from dbb_capture.geometry.cameras import Intrinsics, project_points
 from dbb_capture.geometry.transforms import look_at
 from dbb_capture.geometry.conventions import opencv_from_opengl
@@ -20,7 +22,8 @@ from dbb_capture.crops.camera import crop_camera, crop_maps
 from dbb_capture.crops.object import object_crop
 from dbb_capture.geometry.viewpoint import up_from_cameras
 from dbb_capture.capture.footage import open_footage
-from dbb_capture.synth.scene import SynthConfig, load_ground_truth, write_capture
+from dbb_capture.synth.scene import SynthConfig
+from dbb_capture.synth.capture import load_ground_truth, write_capture
 from dbb_capture.geometry.rays import pixel_rays
 
 UP = np.array([0.0, 0.0, -1.0])
@@ -335,7 +338,8 @@ def _wall_bank(center, radius_wall=2.5, n_views=16, size=40):
 def test_far_sphere_depth_sweep_finds_the_wall():
     """The sweep puts the far sphere's texels at the wall's distance (the views' rays agree there),
     and the field renders the wall from its texels sharper than a sphere at the default radius."""
-    from dbb_capture.background.field import env_coords, with_env_depth
+    from dbb_capture.background.panorama import env_coords
+    from dbb_capture.background.train import with_env_depth
 
     center = np.array([0.3, 0.2, -0.08])
     bank = _wall_bank(center)
@@ -360,7 +364,7 @@ def test_far_sphere_depth_sweep_finds_the_wall():
 
 
 def test_room_rays_keep_away_from_the_matte():
-    from dbb_capture.background.field import room_rays
+    from dbb_capture.background.rays import room_rays
 
     center = np.array([0.3, 0.2, -0.08])
     cam = crop_camera(_ring(center)[3], _intr(), center, 0.1, UP, 32, 0.9)
@@ -377,7 +381,9 @@ def test_room_rays_keep_away_from_the_matte():
 def test_refine_on_room_trains_again_and_sees_under_a_moving_object(plate_capture, tmp_path):
     """Without a plate the field is trained again on the first mattes' room rays (full size, its
     own budget); board-plane texels those rays reach stop being guesses; the model round-trips."""
-    from dbb_capture.background.field import BackgroundModel, refine_on_room, room_rays
+    from dbb_capture.background.model import BackgroundModel
+    from dbb_capture.background.train import refine_on_room
+    from dbb_capture.background.rays import room_rays
 
     cap = plate_capture
     obj = json.loads((cap / "object.json").read_text())
@@ -407,7 +413,7 @@ def test_preprocess_without_plate_trains_the_field_again_on_the_mattes_room(plat
     assert res.exit_code == 0, res.output
     rep = json.loads((ds / "background" / "report.json").read_text())
     assert rep["mode"].startswith("object video") and rep["refined_on_room"]["steps"] > 0
-    from dbb_capture.background.field import BackgroundModel
+    from dbb_capture.background.model import BackgroundModel
 
     assert BackgroundModel.load(ds / "background" / "field.pt").refine.steps == rep["refined_on_room"]["steps"]
     fr = json.loads((ds / "crops.json").read_text())["frames"][0]

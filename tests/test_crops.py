@@ -13,7 +13,8 @@ from dbb_capture.crops.object import at_output, matte_scale, object_crop, premul
 from dbb_capture.crops.camera import crop_camera, crop_maps, cut_crop
 from dbb_capture.crops.sequences import follows_previous, sequence_windows, split_by_time
 from dbb_capture.geometry.viewpoint import up_from_cameras, viewpoint
-from dbb_capture.synth.scene import SynthConfig, make_scene, render_object_rgba
+from dbb_capture.synth.scene import SynthConfig, make_scene
+from dbb_capture.synth.render import render_object_rgba
 
 UP = np.array([0.0, 0.0, -1.0])
 SRC = Intrinsics(640, 480, 520.0, 522.0, 321.4, 238.2, (-0.25, 0.07, 0.0006, -0.0004, -0.008))

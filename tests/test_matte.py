@@ -26,7 +26,9 @@ from dbb_capture.crops.matte import (
     sure_object_counts,
     temporal_median,
 )
-from dbb_capture.synth.scene import UP, Renderer, SynthConfig, make_scene, render_object_rgba, sensor
+from dbb_capture.synth.objects import UP
+from dbb_capture.synth.render import Renderer, render_object_rgba, sensor
+from dbb_capture.synth.scene import SynthConfig, make_scene
 from dbb_capture.geometry.transforms import look_at
 
 

@@ -32,7 +32,9 @@ from dbb_capture.poses.detect import (
 from dbb_capture.poses.solve import FramePose, PoseConfig, pose_frames, reject_outliers, solve_pose
 from dbb_capture.poses.path import fuse_with_path, refine_jointly
 from dbb_capture.poses.corners import refine_saddles, refine_xjunctions
-from dbb_capture.synth.scene import Renderer, SynthConfig, make_scene, sensor, write_capture
+from dbb_capture.synth.render import Renderer, sensor
+from dbb_capture.synth.scene import SynthConfig, make_scene
+from dbb_capture.synth.capture import write_capture
 
 BOARD = BoardSpec(7, 5, 0.05, 0.0375, "DICT_5X5_100")
 UP = np.array([0.0, 0.0, -1.0])

@@ -16,8 +16,10 @@ import pytest
 from dbb_capture.capture.board import BoardSpec
 from dbb_capture.geometry.transforms import invert_rigid, look_at
 from dbb_capture.geometry.conventions import opencv_from_opengl
-from dbb_capture.synth.scene import (UP, Renderer, SynthConfig, load_ground_truth, make_scene,
-                               render_object_rgba, sensor)
+from dbb_capture.synth.objects import UP
+from dbb_capture.synth.render import Renderer, render_object_rgba, sensor
+from dbb_capture.synth.scene import SynthConfig, make_scene
+from dbb_capture.synth.capture import load_ground_truth
 
 
 def _pose_on_sphere(center, dist, az_deg, el_deg, roll_deg=0.0):
@@ -174,7 +176,7 @@ def test_clean_plate_has_no_object(tiny_static_capture):
 
 def test_worker_processes_render_the_same_capture(tmp_path):
     import av
-    from dbb_capture.synth.scene import write_capture
+    from dbb_capture.synth.capture import write_capture
 
     outs = []
     for workers in (1, 2):

@@ -402,7 +402,7 @@ def sample_indices(times: np.ndarray, fps: float | None) -> np.ndarray:
     if fps is None or len(times) == 0:
         return np.arange(len(times))
     if fps <= 0:
-        raise DbbError(f"--fps must be positive, got {fps}")
+        raise DbbError(f"{{=fps}} must be positive, got {fps}")
     ticks = np.arange(0.0, times[-1] + 1e-9, 1.0 / fps)
     idx = np.searchsorted(times, ticks - 1e-6)
     return np.unique(idx[idx < len(times)])

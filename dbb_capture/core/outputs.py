@@ -21,7 +21,7 @@ def atomic_dir(final: Path, overwrite: bool = False) -> Iterator[Path]:
     """
     final = Path(final)
     if final.exists() and not overwrite:
-        raise DbbError(f"{final} already exists (pass --overwrite to replace it)")
+        raise DbbError(f"{final} already exists (pass {{=overwrite}} to replace it)")
     final.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.partial-", dir=final.parent))
     os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes it private; results are for sharing
@@ -96,11 +96,11 @@ def resume_checkpoint(out: Path, name: str = "checkpoint.pt") -> Path:
 def check_run_output(out: Path, overwrite: bool, resume: bool) -> None:
     """A training run may write ``out`` only if it is new, replaced (--overwrite) or resumed."""
     if Path(out).exists() and not (overwrite or resume):
-        raise DbbError(f"{out} already exists (pass --overwrite to replace it, --resume to continue it)")
+        raise DbbError(f"{out} already exists (pass {{=overwrite}} to replace it, {{=resume}} to continue it)")
 
 
 def training_minutes(minutes: float | None, steps: int | None, default: float) -> float | None:
     """The wall-clock budget of a run: ``default`` minutes when neither budget is given."""
     if (minutes is not None and minutes <= 0) or (steps is not None and steps <= 0):
-        raise DbbError("--minutes and --steps must be positive")
+        raise DbbError("{=minutes} and {=steps} must be positive")
     return default if minutes is None and steps is None else minutes

@@ -15,7 +15,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..background.field import BackgroundModel, refine_on_room, room_rays
+from ..background.model import BackgroundModel
+from ..background.train import refine_on_room
+from ..background.rays import room_rays
 from ..capture.footage import FootageSource
 from ..core.images import write_image
 from ..core.outputs import write_json

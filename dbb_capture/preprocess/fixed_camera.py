@@ -40,10 +40,10 @@ def fixed_camera_stage(ctx: StageContext, _previous: Any = None) -> CropsOutput:
     from ..geometry.viewpoint import viewpoint
 
     inp, cfg, out = ctx.inputs, ctx.cfg, ctx.out
-    x, y, side = cfg.fixed_window
+    x, y, side = cfg.crop_window
     info = inp.footage.info
     if side < 8 or x >= info.width or y >= info.height or x + side <= 0 or y + side <= 0:
-        raise InputError(f"--crop-window {x},{y},{side} is outside the {info.width}x{info.height} frame")
+        raise InputError(f"{{=crop_window}} {x},{y},{side} is outside the {info.width}x{info.height} frame")
     touches = x < 0 or y < 0 or x + side > info.width or y + side > info.height
     if touches:
         ctx.notes.append(f"the crop window {x},{y},{side} reaches past the frame's border: padded transparent, "

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..background.field import BackgroundConfig
+from ..background.config import BackgroundConfig
 from ..capture.board import BoardSpec
 from ..capture.footage import FootageSource, R3dSource, capture_footage, open_footage
 from ..core.errors import DbbError, InputError
@@ -73,20 +73,20 @@ class PreprocessConfig:
     test_fraction: float = 0.2
     sequence_length: int = 11
     use_clean_plate: bool = True          # False: learn the room from the object video even if a plate exists
-    fixed_window: tuple[int, int, int] | None = None   # fixed camera: crop window (x, y, side) in pixels
+    crop_window: tuple[int, int, int] | None = None   # fixed camera: crop window (x, y, side) in pixels
     fixed_matte: bool = True              # fixed camera: matte against the background (False: opaque crops)
     background: BackgroundConfig = BackgroundConfig()
     matte: MatteConfig = MatteConfig()
 
     def validate(self) -> None:
         if not 16 <= self.crop_size <= 1024:
-            raise DbbError(f"--crop-size {self.crop_size}: expected 16..1024 pixels")
+            raise DbbError(f"{{=crop_size}} {self.crop_size}: expected 16..1024 pixels")
         if not 0.2 <= self.crop_fill <= 1.0:
-            raise DbbError(f"--crop-fill {self.crop_fill}: expected 0.2..1")
+            raise DbbError(f"{{=crop_fill}} {self.crop_fill}: expected 0.2..1")
         if not 0.0 <= self.test_fraction < 1.0:
-            raise DbbError(f"--test-fraction {self.test_fraction}: expected 0 <= f < 1")
+            raise DbbError(f"{{=test_fraction}} {self.test_fraction}: expected 0 <= f < 1")
         if self.sequence_length < 2:
-            raise DbbError("--sequence-length must be at least 2 (1 context + 1 predicted frame)")
+            raise DbbError("{=sequence_length} must be at least 2 (1 context + 1 predicted frame)")
         self.background.validate()
 
 

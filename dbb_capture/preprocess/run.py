@@ -50,12 +50,12 @@ def run_preprocess(inputs: CaptureInputs, out: Path, cfg: PreprocessConfig = Pre
     """Run the stages in order into ``out`` (written aside, renamed into place)."""
     cfg.validate()
     if cfg.stop_after is not None and cfg.stop_after not in stage_names():
-        raise DbbError(f"--stop-after {cfg.stop_after}: unknown stage "
+        raise DbbError(f"{{=stop_after}} {cfg.stop_after}: unknown stage "
                        f"(expected one of {', '.join(stage_names())})")
     ran: list[str] = []
-    stages = FIXED_STAGES if cfg.fixed_window is not None else STAGES
-    if cfg.fixed_window is None and inputs.board is None:
-        raise InputError(f"{inputs.root}: no board.json (or give --crop-window for a fixed camera without a board)")
+    stages = FIXED_STAGES if cfg.crop_window is not None else STAGES
+    if cfg.crop_window is None and inputs.board is None:
+        raise InputError(f"{inputs.root}: no board.json (or give {{=crop_window}} for a fixed camera without a board)")
     with atomic_dir(Path(out), overwrite=overwrite) as tmp:
         ctx = StageContext(inputs, cfg, tmp)
         record: Any = None
