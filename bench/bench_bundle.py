@@ -1,5 +1,5 @@
 """Benchmarks for issue 7 (bundles): proxy mesh against the true shape, renders from a bundle
-against the training run's renders, verify against a flipped byte. Figures go to docs/benchmarks.md.
+against the training run's renders, verify against a flipped byte. Figures go to docs/results.md.
 
     python bench/bench_bundle.py static RUN OUT [--capture CAPTURE | --seed 0]
     python bench/bench_bundle.py dynamic RUN OUT [--seed 0]
@@ -102,7 +102,7 @@ def bench_static(run: Path, out: Path, capture: Path | None, seed: int, res: int
     truth = true_occupancy(model, 0.0, P)
     iou = float((mine & truth).sum() / max(1, (mine | truth).sum()))
     # Renders from the bundle (dbb-export render, 8-bit PNG) vs the run's own tree renders, both vs truth.
-    ds = load_dataset(Path(load_run(run).meta["dataset"]))
+    ds = load_dataset(Path(load_run(run).record.dataset))
     test = ds.split("test") or ds.frames[::8]
     cams = {"frames": [{"file_path": f"{f.name}.png", "transform_matrix": opengl_from_opencv(f.c2w).tolist(),
                         **f.intr.nerfstudio_fields()} for f in test]}

@@ -10,7 +10,7 @@ Speed (``speed``): a 1920x1440 synthetic capture is re-encoded as a longer video
 forth and back, a keyframe a second, as phones write) and posed end to end, decode
 included, three ways: plain full-resolution ``detectBoard`` in one process; the fast path
 (reduced image, tracked region, full-resolution corner refinement) in one process; the
-fast path over 2 spawned processes. Prints Markdown rows for docs/benchmarks.md.
+fast path over 2 spawned processes. Prints Markdown rows for docs/results.md.
 
     flock /tmp/dbb-bench.lock .venv/bin/python bench/bench_poses.py accuracy --work /tmp/dbb-bench-poses
     flock /tmp/dbb-bench.lock .venv/bin/python bench/bench_poses.py speed --work /tmp/dbb-bench-poses

@@ -4,7 +4,7 @@ Measures (a) the renderer alone in this process (ray casting, shading, anti-alia
 share of pixels the adaptive renderer supersampled) and
 (b) a whole `write_capture` (render in worker processes + sensor noise + H.264 encoding +
 masks; worker start-up included), per frame, and prints a Markdown table row for
-docs/benchmarks.md.
+docs/results.md.
 
     .venv/bin/python bench/bench_synth.py --resolution 640x480 --frames 30
 """

@@ -5,7 +5,7 @@
 # Usage: ./scripts/demo.sh [OUTPUT_DIR]   (default: out/demo)
 # Budgets (minutes) can be changed: DBB_BG_MINUTES, DBB_TRAIN_MINUTES. The defaults keep the whole
 # demo, install included, within 15 minutes on 2 CPU cores: enough to see every stage work, not
-# for quality (train for 10-15 minutes and at --res-max 256+ for that; see docs/benchmarks.md).
+# for quality (train for 10-15 minutes and at --res-max 256+ for that; see docs/results.md).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ./scripts/setup.sh

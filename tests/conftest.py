@@ -1,10 +1,19 @@
-"""Shared test helpers: the third-party data folder, and small synthetic captures made once."""
+"""Shared test helpers: the third-party data folder, small synthetic captures made once per
+session, a ring of cameras around an object and the error between two rotations."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
+import numpy as np
 import pytest
+
+from dbb_capture.capture.board import BoardSpec
+from dbb_capture.geometry.cameras import Intrinsics
+from dbb_capture.geometry.transforms import look_at
+from dbb_capture.synth.capture import write_capture
+from dbb_capture.synth.scene import SynthConfig
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO / ".." / "shared" / "data"
@@ -21,9 +30,6 @@ def shared_data(*parts: str) -> Path:
 @pytest.fixture(scope="session")
 def tiny_static_capture(tmp_path_factory) -> Path:
     """A 2-second 320x240 static capture with clean plate, rendered once per test session."""
-    from dbb_capture.synth.scene import SynthConfig
-    from dbb_capture.synth.capture import write_capture
-
     out = tmp_path_factory.mktemp("captures") / "static"
     write_capture(SynthConfig(kind="static", seconds=2.0, fps=5, width=320, height=240,
                               background_seconds=1.0, seed=3), out)
@@ -33,10 +39,49 @@ def tiny_static_capture(tmp_path_factory) -> Path:
 @pytest.fixture(scope="session")
 def tiny_dynamic_capture(tmp_path_factory) -> Path:
     """A 3-second 320x240 dynamic capture (no clean plate), rendered once per test session."""
-    from dbb_capture.synth.scene import SynthConfig
-    from dbb_capture.synth.capture import write_capture
-
     out = tmp_path_factory.mktemp("captures") / "dynamic"
     write_capture(SynthConfig(kind="dynamic", seconds=3.0, fps=5, width=320, height=240,
                               background_seconds=None, seed=4), out)
+    return out
+
+
+UP = np.array([0.0, 0.0, -1.0])
+
+
+def ring_cameras(center, n=12, dist=0.6, el_deg=40.0) -> np.ndarray:
+    """``n`` OpenCV camera-to-world poses (n, 4, 4) on an arc of +-60 degrees around ``center``."""
+    out = []
+    for a in np.linspace(-60, 60, n):
+        a, e = np.radians(a), np.radians(el_deg)
+        eye = center + dist * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), -np.sin(e)])
+        out.append(look_at(eye, center, UP))
+    return np.stack(out)
+
+
+def small_intrinsics() -> Intrinsics:
+    """A 320x240 pinhole without distortion (the synthetic test captures' size)."""
+    return Intrinsics(320, 240, 260.0, 260.0, 159.5, 119.5)
+
+
+@pytest.fixture(scope="session")
+def plate_capture(tmp_path_factory) -> Path:
+    """A 2-second 320x240 static capture with a 2-second clean plate."""
+    out = tmp_path_factory.mktemp("bg") / "cap"
+    write_capture(SynthConfig(kind="static", seconds=2.0, fps=6, width=320, height=240,
+                              background_seconds=2.0, seed=21), out)
+    return out
+
+
+def rotation_error_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
+    """The angle (degrees) of the rotation between ``Ra`` and ``Rb`` (each (3, 3))."""
+    return math.degrees(math.acos(float(np.clip((np.trace(Ra.T @ Rb) - 1) / 2, -1, 1))))
+
+
+@pytest.fixture(scope="session")
+def distorted_capture(tmp_path_factory) -> Path:
+    """A 2 s, 5 fps, 320x240 capture with a coarse board (readable at that size), lens distortion."""
+    out = tmp_path_factory.mktemp("poses") / "cap"
+    board = BoardSpec(5, 4, 0.07, 0.05, "DICT_4X4_50")
+    write_capture(SynthConfig(kind="static", seconds=2.0, fps=5, width=320, height=240, board=board,
+                              background_seconds=None, seed=5, dist=(-0.1, 0.03, 0.0, 0.0, 0.0)), out)
     return out

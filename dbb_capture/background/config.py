@@ -49,7 +49,7 @@ def training_size(cfg: BackgroundConfig, matte_px: int, crop_fill: float, window
     training pixel per source pixel) nor coarser than ``cfg.train_size``. At 64 px the 640x480
     capture's 256 px mattes met a room blurred over 3-4 of their pixels: 128 px crops'
     background near the outline 24-25 dB in frames where the board shows behind the object,
-    28-32 dB at 160 px; crops against the truth +0.9 dB on white (docs/benchmarks.md, issue 4).
+    28-32 dB at 160 px; crops against the truth +0.9 dB on white (docs/decisions.md, train_size).
     """
     want = matte_px * cfg.train_fill / crop_fill
     footage = window_px * crop_fill / cfg.train_fill      # the training window in source pixels

@@ -117,7 +117,7 @@ def cut_crop(image: np.ndarray, cam: CropCamera, src: Intrinsics, src_c2w: np.nd
     image, it is rendered at ``s`` samples per pixel and box-filtered, so it does not alias. The
     taps are bicubic: a bilinear tap blurs by ~0.4 source px, ~0.3 crop px where a crop pixel
     spans few source pixels (low-resolution footage); bicubic gave +0.4 dB on black and on white
-    at 640x480 (docs/benchmarks.md, issue 4, tenth session).
+    at 640x480 (docs/decisions.md, bicubic taps).
     """
     s = max(1, min(8, math.ceil(cam.window_px / cam.intr.width)))
     mx, my = crop_maps(cam, src, src_c2w, s)

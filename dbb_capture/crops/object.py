@@ -43,7 +43,7 @@ def matte_scale(windows_px: np.ndarray, size: int, between: tuple[float, float])
     (640x480 footage, 64 px crops: alpha IoU +0.01 to +0.03). It holds down to about one source
     pixel per crop pixel, where the doubled crop is upsampled footage: 128 px crops of 640x480
     (1.3 source px per crop px), cut with bicubic taps, gain +1.1 dB on white against the truth
-    and the tree +0.3 dB (docs/benchmarks.md, issue 4, tenth session; with bilinear taps it had
+    and the tree +0.3 dB (docs/decisions.md, supersample_between; with bilinear taps it had
     lost). Further below, the matte's pixel-sized steps would over-resolve the footage; above the
     range the 1x matte meets its bars and the 4x pixels (background render included) would cost
     the real-time throughput.

@@ -195,7 +195,7 @@ def calibrate_footage(source: FootageSource, board: BoardSpec, fps: float | None
     By default OpenCV's calibration (``cornerSubPix`` corners, see :func:`calibrate`), so the
     result agrees with OpenCV's tools; ``precise``: saddle-point corners, off-pose corners
     dropped, square pixels, the chosen views' corners re-fitted by :func:`refine_xjunctions`
-    and distortion terms the corners do not call for left out (see docs/benchmarks.md).
+    and distortion terms the corners do not call for left out (docs/decisions.md, precise self-calibration).
     """
     dets = detect_sampled(source, board, fps, DetectorConfig(saddle=precise), workers, tick, total)
     blurry = blurry_mask(np.array([d.sharpness for d in dets]), blur_ratio)

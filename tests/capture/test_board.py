@@ -1,4 +1,6 @@
-"""board.json <-> BoardSpec <-> OpenCV CharucoBoard."""
+"""board.json: round trip and clear errors."""
+
+from __future__ import annotations
 
 import json
 

@@ -1,4 +1,4 @@
-"""Posed datasets: transforms.json / Blender / crops.json read into OpenCV-convention frames."""
+"""Reading and writing transforms-style files: nerfstudio, Blender, crops.json."""
 
 from __future__ import annotations
 
@@ -11,41 +11,27 @@ import numpy as np
 import pytest
 from conftest import shared_data
 
-from dbb_capture.geometry.cameras import Intrinsics, project_points
-from dbb_capture.geometry.transforms import look_at
-from dbb_capture.geometry.conventions import opengl_from_opencv
-from dbb_capture.datasets.records import Frame, ObjectVolume, estimate_volume, holdout_every
-from dbb_capture.datasets.transforms import load_dataset, write_crops, write_transforms
-from dbb_capture.datasets.images import load_rgba
-from dbb_capture.geometry.rays import pixel_rays
-from dbb_capture.geometry.cameras import scaled_intrinsics
 from dbb_capture.core.errors import DbbError
+from dbb_capture.datasets.images import load_rgba
+from dbb_capture.datasets.records import (
+    Frame,
+    ObjectVolume,
+    estimate_volume,
+    holdout_every,
+)
+from dbb_capture.datasets.transforms import load_dataset, write_crops, write_transforms
+from dbb_capture.geometry.cameras import Intrinsics
+from dbb_capture.geometry.conventions import opengl_from_opencv
 
-INTR = Intrinsics(40, 30, 50.0, 52.0, 19.3, 14.6, (0.05, -0.02, 0.001, -0.002, 0.0))
-
-
-def _img(path, rgba=True, value=200):
-    img = np.full((30, 40, 4 if rgba else 3), value, np.uint8)
-    if rgba:
-        img[..., 3] = 255
-        img[:10, :, 3] = 0
-    cv2.imwrite(str(path), img)
-
-
-def _poses(n=4):
-    out = []
-    for i in range(n):
-        a = 2 * math.pi * i / n
-        out.append(look_at(np.array([2 * math.cos(a), 2 * math.sin(a), -1.0]), np.zeros(3), np.array([0, 0, -1.0])))
-    return out
+from .conftest import INTR, write_image, poses_around
 
 
 def test_transforms_json_conventions_paths_and_per_frame_intrinsics(tmp_path):
-    poses = _poses()
+    poses = poses_around()
     (tmp_path / "img").mkdir()
     frames = []
     for i, c2w in enumerate(poses):
-        _img(tmp_path / "img" / f"{i}.jpg", rgba=False)
+        write_image(tmp_path / "img" / f"{i}.jpg", rgba=False)
         frames.append({"file_path": f"img/{i}.jpg", "transform_matrix": opengl_from_opencv(c2w).tolist()})
     frames[2]["file_path"] = str((tmp_path / "img" / "2.jpg").resolve())       # absolute path
     frames[3].update({"fl_x": 61.0, "fl_y": 62.0, "cx": 20.0, "cy": 15.0})       # per-frame intrinsics
@@ -64,8 +50,8 @@ def test_transforms_json_conventions_paths_and_per_frame_intrinsics(tmp_path):
 def test_blender_camera_angle_and_extensionless_paths(tmp_path):
     (tmp_path / "train").mkdir()
     frames = []
-    for i, c2w in enumerate(_poses(3)):
-        _img(tmp_path / "train" / f"r_{i}.png")
+    for i, c2w in enumerate(poses_around(3)):
+        write_image(tmp_path / "train" / f"r_{i}.png")
         frames.append({"file_path": f"./train/r_{i}", "transform_matrix": opengl_from_opencv(c2w).tolist()})
     (tmp_path / "transforms_train.json").write_text(json.dumps({"camera_angle_x": 0.7, "frames": frames}))
     ds = load_dataset(tmp_path)
@@ -79,8 +65,8 @@ def test_blender_camera_angle_and_extensionless_paths(tmp_path):
 
 def test_crops_json_split_volume_and_write_round_trip(tmp_path):
     frames = []
-    for i, c2w in enumerate(_poses(4)):
-        _img(tmp_path / f"{i:05d}.png")
+    for i, c2w in enumerate(poses_around(4)):
+        write_image(tmp_path / f"{i:05d}.png")
         frames.append(Frame(f"{i:05d}", tmp_path / f"{i:05d}.png", c2w, INTR, "test" if i == 1 else "train",
                             time=0.1 * i))
     write_transforms(tmp_path / "crops.json", frames, ObjectVolume((0.1, 0.2, 0.3), 0.4))
@@ -101,7 +87,7 @@ def test_crops_json_names_each_crops_camera_source_and_predicted_room(tmp_path):
 
     crop = Intrinsics(32, 32, 40.0, 40.0, 15.5, 15.5)
     frames = []
-    for i, c2w in enumerate(_poses(3)):
+    for i, c2w in enumerate(poses_around(3)):
         for sub in ("crops", "crops_observed", "crops_background"):
             (tmp_path / sub).mkdir(exist_ok=True)
             cv2.imwrite(str(tmp_path / sub / f"{i:05d}.png"), np.full((32, 32, 4), 200, np.uint8))
@@ -124,35 +110,6 @@ def test_crops_json_names_each_crops_camera_source_and_predicted_room(tmp_path):
     assert ds.frames[1].viewpoint == Viewpoint(30.0, 20.0, 0.5) and ds.frames[2].touches_border
     assert ds.frames[0].observed_path == tmp_path / "crops_observed" / "00000.png" and ds.frames[2].observed_path is None
     assert ds.volume == ObjectVolume((0.1, 0.2, 0.3), 0.4)
-
-
-def test_rays_pass_through_projected_points_with_distortion():
-    c2w = _poses(1)[0]
-    pts = np.random.default_rng(0).uniform(-0.2, 0.2, (20, 3))
-    uv = project_points(pts, c2w, INTR)
-    o, d = pixel_rays(INTR, c2w)
-    # Bilinear look-up of the ray direction at the projected pixel must point at the point.
-    for p, (u, v) in zip(pts, uv):
-        if not (0 <= u < INTR.width - 1 and 0 <= v < INTR.height - 1):
-            continue
-        from dbb_capture.geometry.rays import camera_rays
-        dc = camera_rays(INTR, np.array([[u, v]]))[0]
-        dw = c2w[:3, :3] @ dc
-        want = (p - c2w[:3, 3]) / np.linalg.norm(p - c2w[:3, 3])
-        assert np.degrees(np.arccos(np.clip(dw @ want, -1, 1))) < 1e-4
-    assert o.shape == d.shape == (30, 40, 3)
-    np.testing.assert_allclose(np.linalg.norm(d, axis=-1), 1, atol=1e-5)
-
-
-def test_downscaled_intrinsics_keep_pixel_centres():
-    s = scaled_intrinsics(Intrinsics(800, 800, 1000, 1000, 399.5, 399.5), 4)
-    assert (s.width, s.height, s.fx, s.cx) == (200, 200, 250, 99.5)
-
-
-def test_estimated_volume_holds_the_look_at_point():
-    frames = [Frame(str(i), None, c2w, INTR) for i, c2w in enumerate(_poses(6))]
-    v = estimate_volume(frames)
-    assert v.estimated and np.linalg.norm(v.center) < 1e-6 and 0.3 < v.radius < 2.3
 
 
 def test_bad_datasets_fail_clearly(tmp_path):

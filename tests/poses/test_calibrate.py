@@ -1,5 +1,4 @@
-"""Calibration: OpenCV's real ChArUco photos against OpenCV's own result, synthetic views with
-a known camera (and a corrupted view to reject), and the command's bad-input cases."""
+"""Calibration: OpenCV's real photos, synthetic views, square pixels, bad input."""
 
 from __future__ import annotations
 
@@ -11,15 +10,15 @@ import cv2
 import numpy as np
 import pytest
 from click.testing import CliRunner
-
 from conftest import shared_data
+from dbb_capture.cli.capture import main
+
 from dbb_capture.capture.board import BoardSpec
+from dbb_capture.capture.footage import FootageFrame
 from dbb_capture.geometry.cameras import Intrinsics, project_points
 from dbb_capture.geometry.transforms import look_at
-from dbb_capture.cli.capture import main
-from dbb_capture.capture.footage import FootageFrame
-from dbb_capture.poses.detect import Detection, detect_frames
 from dbb_capture.poses.calibrate import calibrate
+from dbb_capture.poses.detect import Detection, detect_frames
 from dbb_capture.poses.solve import pose_frames
 
 REAL_BOARD = {"squares_x": 5, "squares_y": 7, "square_length": 0.04, "marker_length": 0.02,

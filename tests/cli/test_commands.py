@@ -1,4 +1,4 @@
-"""Every command answers --help; bad input ends in one clear line and exit status 2."""
+"""Every command: --help, one clear line and exit 2 on bad input, outputs kept."""
 
 from __future__ import annotations
 
@@ -8,10 +8,11 @@ import sys
 from pathlib import Path
 
 import pytest
-
 from dbb_capture.cli import capture, export, train
 
 GROUPS = {"dbb-capture": capture.main, "dbb-train": train.main, "dbb-export": export.main}
+
+
 BIN = Path(sys.executable).parent
 
 

@@ -1,14 +1,14 @@
-"""Mattes from a predicted background match the true object masks."""
+"""Mattes against a predicted room: exact, blurred or misregistered rooms, guesses, noise, rims."""
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import cv2
 import numpy as np
 import pytest
 
 from dbb_capture.crops.camera import crop_camera, cut_crop
-from dataclasses import replace
-
 from dbb_capture.crops.matte import (
     CaptureMatte,
     MatteConfig,
@@ -26,10 +26,10 @@ from dbb_capture.crops.matte import (
     sure_object_counts,
     temporal_median,
 )
+from dbb_capture.geometry.transforms import look_at
 from dbb_capture.synth.objects import UP
 from dbb_capture.synth.render import Renderer, render_object_rgba, sensor
 from dbb_capture.synth.scene import SynthConfig, make_scene
-from dbb_capture.geometry.transforms import look_at
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""Footage converters: frame times, subsets, rotation, image folders, Record3D, sampling, blur."""
+"""Footage sources: videos (times, rotation, truncation), image and RAW folders, Record3D exports."""
 
 from __future__ import annotations
 
@@ -11,11 +11,20 @@ import cv2
 import numpy as np
 import pytest
 from click.testing import CliRunner
-
 from dbb_capture.cli.capture import main
+
+from dbb_capture.capture.footage import (
+    FootageFrame,
+    ImageFolderSource,
+    R3dSource,
+    RawFolderSource,
+    VideoSource,
+    blurry_mask,
+    open_footage,
+    sample_indices,
+    sharpness,
+)
 from dbb_capture.core.errors import DbbError, InputError
-from dbb_capture.capture.footage import (FootageFrame, ImageFolderSource, R3dSource, RawFolderSource, VideoSource, blurry_mask,
-                            open_footage, sample_indices, sharpness)
 
 
 def _frame(i: int, w: int = 64, h: int = 48) -> np.ndarray:

@@ -1,0 +1,89 @@
+"""The poses stage through the command: its files, calibration, bad input."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from conftest import rotation_error_deg
+from dbb_capture.cli.capture import main
+
+from dbb_capture.geometry.conventions import opencv_from_opengl
+
+
+def test_preprocess_stop_after_poses(distorted_capture, tmp_path):
+    ds = tmp_path / "ds"
+    res = CliRunner().invoke(main, ["preprocess", str(distorted_capture), "-o", str(ds), "--stop-after", "poses",
+                                    "--camera", str(distorted_capture / "ground_truth" / "camera.json")])
+    assert res.exit_code == 0, res.output
+    tf = json.loads((ds / "transforms.json").read_text())
+    gt = json.loads((distorted_capture / "ground_truth" / "cameras.json").read_text())["video"]
+    assert tf["camera_model"] == "OPENCV" and tf["k1"] == 0.0 and tf["up"] == [0.0, 0.0, -1.0]
+    assert len(tf["frames"]) >= 7
+    rot = []
+    for fr in tf["frames"]:
+        assert (ds / fr["file_path"]).is_file()
+        i = int(Path(fr["file_path"]).stem)
+        assert fr["time"] == pytest.approx(gt[i]["time"])
+        est = opencv_from_opengl(np.array(fr["transform_matrix"]))
+        true = opencv_from_opengl(np.array(gt[i]["transform_matrix"]))
+        rot.append(rotation_error_deg(est[:3, :3], true[:3, :3]))
+        # Plumbing check: 320x240 frames with 6-12 corners each (accuracy: the rendered sweep above).
+        assert np.linalg.norm(est[:3, 3] - true[:3, 3]) < 0.03
+    assert np.median(rot) < 0.4 and max(rot) < 1.5
+    # The COLMAP model holds the same cameras, with COLMAP's +0.5 px principal point.
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(str(ds / "colmap" / "sparse" / "0"))
+    assert rec.num_images() == len(tf["frames"])
+    cam = rec.cameras[1]
+    assert cam.params[2] == pytest.approx(tf["cx"] + 0.5)
+    im = next(iter(rec.images.values()))
+    fr = next(f for f in tf["frames"] if f["file_path"] == im.name)
+    w2c = np.linalg.inv(opencv_from_opengl(np.array(fr["transform_matrix"])))
+    np.testing.assert_allclose(im.cam_from_world().matrix(), w2c[:3], atol=1e-6)
+    report = json.loads((ds / "poses" / "report.json").read_text())
+    assert report["frames_posed"] == len(tf["frames"]) and report["frames_sampled"] == 10
+    assert all("corners" in f and f["sharpness"] > 0 for f in report["frames"])
+    assert report["frames_in_footage"] == 10
+    assert (ds / "poses" / "camera_path.png").stat().st_size > 10_000
+    assert json.loads((ds / "preprocess.json").read_text())["stages_run"] == ["poses"]
+
+
+def test_preprocess_calibrates_when_no_camera_json(distorted_capture, tmp_path):
+    ds = tmp_path / "ds"
+    res = CliRunner().invoke(main, ["preprocess", str(distorted_capture), "-o", str(ds), "--refine",
+                                    "--stop-after", "poses"])
+    assert res.exit_code == 0, res.output
+    cam = json.loads((ds / "camera.json").read_text())
+    true = json.loads((distorted_capture / "ground_truth" / "camera.json").read_text())
+    # Seven small views calibrate loosely; calibration accuracy is tested in test_calibrate.py.
+    assert abs(cam["fx"] / true["fx"] - 1) < 0.15 and cam["rms"] < 0.5
+    assert "calibrated" in json.loads((ds / "poses" / "report.json").read_text())["intrinsics_source"]
+
+
+@pytest.mark.parametrize("case", ["bad_board", "wrong_dictionary", "unknown_stage", "exists"])
+def test_preprocess_bad_input_exits_2(distorted_capture, tmp_path, case):
+    args = ["preprocess", str(distorted_capture), "-o", str(tmp_path / "ds")]
+    if case == "bad_board":
+        (tmp_path / "board.json").write_text("{not json")
+        args += ["--board", str(tmp_path / "board.json")]
+    elif case == "wrong_dictionary":
+        (tmp_path / "board.json").write_text(json.dumps(
+            {"squares_x": 5, "squares_y": 4, "square_length": 0.07, "marker_length": 0.05,
+             "dictionary": "DICT_6X6_250"}))
+        args += ["--board", str(tmp_path / "board.json"), "--fps", "2"]
+    elif case == "unknown_stage":
+        args += ["--stop-after", "matting"]
+    else:
+        (tmp_path / "ds").mkdir()
+    res = CliRunner().invoke(main, args)
+    assert res.exit_code == 2
+    lines = [ln for ln in res.output.splitlines() if ln.strip()]
+    assert len(lines) == 1, res.output
+    expect = {"bad_board": "not valid JSON", "wrong_dictionary": "DICT_4X4_",
+              "unknown_stage": "unknown stage", "exists": "already exists"}[case]
+    assert expect in lines[0]
