@@ -1,7 +1,5 @@
-"""Field settings compared at a fixed number of steps on NeRF-synthetic lego (issue 4).
-
-Steps, not minutes, so the machine's load does not change the outcome. Figures go to
-docs/benchmarks.md, "PlenOctree (issue 4)", second session:
+"""Field settings compared at a fixed number of steps on NeRF-synthetic lego (figures of each
+lever in docs/decisions.md). Steps, not minutes, so the machine's load does not change the outcome:
 
     python bench/bench_field_ablation.py NAME '{"tv_density": 1e-5, "tv_sh": 1e-5}' --steps 800
 """
@@ -15,10 +13,10 @@ import time
 from pathlib import Path
 
 import torch
+from common import emit  # bench/ is the script folder: on sys.path
 
 from dbb_capture.static.field import FieldConfig
 from dbb_capture.static.run import RunConfig, train_run
-from common import emit  # bench/ is the script folder: on sys.path
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "nerf_lego"
 
@@ -37,11 +35,11 @@ def main(argv: list[str] | None = None) -> int:
     t = time.time()
     run = train_run(DATA, a.work / a.name, RunConfig(steps=a.steps, downscale=4, max_report_views=13), fc,
                     overwrite=True, quiet=True)
-    m = run.meta
-    return emit({"name": a.name, "settings": kw, "steps": m["training"]["steps"],
-                 "train_seconds": m["training"]["seconds"], "wall_seconds": round(time.time() - t),
-                 "psnr_tree_white": m["metrics"]["mean_psnr_tree_white"],
-                 "psnr_field_white": m["metrics"]["mean_psnr_field_white"]}, None)
+    rec = run.record
+    return emit({"name": a.name, "settings": kw, "steps": rec.training.steps,
+                 "train_seconds": rec.training.seconds, "wall_seconds": round(time.time() - t),
+                 "psnr_tree_white": rec.metrics["mean_psnr_tree_white"],
+                 "psnr_field_white": rec.metrics["mean_psnr_field_white"]}, None)
 
 
 if __name__ == "__main__":

@@ -1,8 +1,8 @@
-"""Benchmarks for issue 4 (PlenOctree): quality on NeRF-synthetic lego, fox and a synthetic
-object, render speed and size of the baked tree. Figures go to docs/benchmarks.md.
+"""PlenOctree benchmarks: quality on NeRF-synthetic lego, fox and a synthetic object, render
+speed and size of the baked tree (figures in docs/results.md).
 
-Each part evaluates a run folder written by ``dbb-train plenoctree`` (train it first, under
-``flock /tmp/dbb-bench.lock`` so timings do not overlap), or trains one itself with ``--train``:
+Each part evaluates a run folder written by ``dbb-train plenoctree`` (train it first, one
+benchmark at a time so timings do not overlap), or trains one itself:
 
     python bench/bench_plenoctree.py lego RUN            # held-out PSNR (white) + SSIM, speed, size
     python bench/bench_plenoctree.py fox RUN             # held-out PSNR on the 17 listed frames
@@ -29,16 +29,25 @@ from pathlib import Path
 
 import numpy as np
 import torch
-
-from dbb_capture.geometry.cameras import Intrinsics
-from dbb_capture.geometry.transforms import look_at
-from dbb_capture.datasets.records import Frame, ObjectVolume, load_dataset, write_transforms
-from dbb_capture.geometry.cameras import scaled_intrinsics
-from dbb_capture.static.field import TrainState, frame_tensors, render_image
-from dbb_capture.core.metrics import psnr_from_mse
-from dbb_capture.octree.render import TreeRenderer
-from dbb_capture.static.run import RunConfig, evaluate_views, load_run, mean_of, split_frames, train_run
 from common import emit  # bench/ is the script folder: on sys.path
+
+from dbb_capture.core.metrics import psnr_from_mse
+from dbb_capture.datasets.records import Frame, ObjectVolume
+from dbb_capture.datasets.transforms import load_dataset, write_transforms
+from dbb_capture.geometry.cameras import Intrinsics, scaled_intrinsics
+from dbb_capture.geometry.transforms import look_at
+from dbb_capture.octree.render import TreeRenderer
+from dbb_capture.static.rays import frame_tensors
+from dbb_capture.static.render import render_image
+from dbb_capture.static.run import (
+    RunConfig,
+    evaluate_views,
+    load_run,
+    mean_of,
+    split_frames,
+    train_run,
+)
+from dbb_capture.static.train import TrainState
 
 FOX_HELDOUT = ("0005", "0016", "0017", "0024", "0032", "0051", "0068", "0071", "0075", "0083", "0087",
                "0088", "0093", "0099", "0104", "0106", "0113")
@@ -56,15 +65,15 @@ def render_speed(renderer: TreeRenderer, c2w: np.ndarray, base: Intrinsics, size
 
 def bench_lego(run_dir: Path, repeats: int) -> dict:
     run = load_run(run_dir)
-    ds = load_dataset(Path(run.meta["dataset"]))
+    ds = load_dataset(Path(run.record.dataset))
     _, test = split_frames(ds, RunConfig(holdout_every=8))
     tree = run.tree()
     r = TreeRenderer(tree)
-    rows = evaluate_views(r, test, run.meta["training"]["downscale"])
+    rows = evaluate_views(r, test, run.record.training.downscale)
     f = test[0]
     return {
-        "run": str(run_dir), "train_minutes": run.meta["training"]["seconds"] / 60,
-        "steps": run.meta["training"]["steps"], "final_lattice": run.meta["field"]["final_res"],
+        "run": str(run_dir), "train_minutes": run.record.training.seconds / 60,
+        "steps": run.record.training.steps, "final_lattice": run.record.final_res,
         "heldout_views": len(test), "psnr_white": mean_of(rows, "psnr_white"),
         "ssim_white": mean_of(rows, "ssim_white"),
         "tree_mb": run.tree_path.stat().st_size / 1e6, "tree_depth": tree.depth_limit,
@@ -77,7 +86,7 @@ def bench_lego(run_dir: Path, repeats: int) -> dict:
 def bench_speed(run_dir: Path, repeats: int) -> dict:
     """Render speed and size of a run's tree alone (first held-out camera of its dataset)."""
     run = load_run(run_dir)
-    ds = load_dataset(Path(run.meta["dataset"]))
+    ds = load_dataset(Path(run.record.dataset))
     _, test = split_frames(ds, RunConfig(holdout_every=8))
     r = TreeRenderer(run.tree())
     f = test[0]
@@ -90,18 +99,18 @@ def bench_speed(run_dir: Path, repeats: int) -> dict:
 def bench_fox(run_dir: Path) -> dict:
     """Held-out PSNR of the scene field (fox is a scene: the tree holds only the inner sphere)."""
     run = load_run(run_dir)
-    ds = load_dataset(Path(run.meta["dataset"]))
+    ds = load_dataset(Path(run.record.dataset))
     _, test = split_frames(ds, RunConfig(holdout_names=FOX_HELDOUT))
-    st = TrainState.load(run_dir / "checkpoint.pt", torch.device("cpu"))
+    st = TrainState.load(run.checkpoint_path, torch.device("cpu"))
     ps = []
     for f in test:
-        o, d, rgba = frame_tensors(f, run.meta["training"]["downscale"])
+        o, d, rgba = frame_tensors(f, run.record.training.downscale)
         img = render_image(st.field, torch.from_numpy(o), torch.from_numpy(d), (0.0, 0.0, 0.0))
         ps.append(psnr_from_mse(float(((img - rgba[..., :3]) ** 2).mean())))
-    return {"run": str(run_dir), "train_minutes": run.meta["training"]["seconds"] / 60,
-            "steps": run.meta["training"]["steps"], "heldout_views": len(test),
+    return {"run": str(run_dir), "train_minutes": run.record.training.seconds / 60,
+            "steps": run.record.training.steps, "heldout_views": len(test),
             "psnr_heldout_field": float(np.mean(ps)), "per_view": dict(zip([f.name for f in test], ps)),
-            "tree_heldout_white_report": run.meta["metrics"].get("mean_psnr_tree_white")}
+            "tree_heldout_white_report": run.record.metrics.get("mean_psnr_tree_white")}
 
 
 def synth_dataset(out: Path, n_train: int = 60, n_test: int = 12, size: int = 128, seed: int = 0) -> Path:
@@ -111,7 +120,9 @@ def synth_dataset(out: Path, n_train: int = 60, n_test: int = 12, size: int = 12
     import cv2
 
     from dbb_capture.capture.board import BoardSpec
-    from dbb_capture.synth.scene import SynthConfig, make_object, render_object_rgba
+    from dbb_capture.synth.objects import make_object
+    from dbb_capture.synth.render import render_object_rgba
+    from dbb_capture.synth.scene import SynthConfig
 
     cfg = SynthConfig(seed=seed)
     model = make_object("static", BoardSpec(7, 5, 0.05, 0.0375, "DICT_5X5_100"), np.random.default_rng(seed))
@@ -143,8 +154,8 @@ def bench_synth(out: Path, minutes: float) -> dict:
     ds = load_dataset(data)
     test = ds.split("test")
     rows = evaluate_views(TreeRenderer(run.tree()), test, 1.0, ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0)))
-    return {"train_minutes": run.meta["training"]["seconds"] / 60, "wall_minutes_incl_bake": wall / 60,
-            "steps": run.meta["training"]["steps"], "heldout_views": len(test),
+    return {"train_minutes": run.record.training.seconds / 60, "wall_minutes_incl_bake": wall / 60,
+            "steps": run.record.training.steps, "heldout_views": len(test),
             "psnr_black": mean_of(rows, "psnr_black"), "psnr_white": mean_of(rows, "psnr_white"),
             "ssim_white": mean_of(rows, "ssim_white"), "tree_mb": run.tree_path.stat().st_size / 1e6}
 
@@ -155,7 +166,8 @@ def truth_crops(dataset: Path, capture: Path, out: Path) -> Path:
     Training on it measures the ceiling the field reaches with perfect mattes."""
     import cv2
 
-    from dbb_capture.synth.scene import load_ground_truth, render_object_rgba
+    from dbb_capture.synth.capture import load_ground_truth
+    from dbb_capture.synth.render import render_object_rgba
 
     ds = load_dataset(dataset)
     _, _, model = load_ground_truth(capture)
@@ -180,14 +192,15 @@ def footage_ceiling(capture: Path, size: int = 128, fill: float = 0.9, test_frac
     as a perfect matte would); scored against the object alone rendered through the crop camera,
     on black and white, for the crops of the time split's test part, the every-n-th crops and all."""
     import cv2
+    from bench_preprocess import synth_scene  # bench/ is the script folder: on sys.path
 
-    from dbb_capture.geometry.conventions import opencv_from_opengl
-    from dbb_capture.crops.camera import crop_camera, cut_crop, split_by_time
     from dbb_capture.capture.footage import capture_footage
+    from dbb_capture.crops.camera import crop_camera, cut_crop
     from dbb_capture.crops.matte import straight_rgba
-    from dbb_capture.synth.scene import Renderer, load_ground_truth, render_object_rgba
-
-    from bench_preprocess import synth_scene   # bench/ is the script folder: on sys.path
+    from dbb_capture.crops.sequences import split_by_time
+    from dbb_capture.geometry.conventions import opencv_from_opengl
+    from dbb_capture.synth.capture import load_ground_truth
+    from dbb_capture.synth.render import Renderer, render_object_rgba
 
     intr, cams, model = load_ground_truth(capture)
     room_scene = synth_scene(capture).without_object()
@@ -228,12 +241,12 @@ def footage_ceiling(capture: Path, size: int = 128, fill: float = 0.9, test_frac
 
 def carve_check(dataset: Path, capture: Path, res: int = 128, shares: tuple[float, ...] = (0.1, 0.2, 0.3),
                 min_views: int = 3) -> list[dict]:
-    """What carving (:func:`~dbb_capture.static.field.carve_mask`) does on a synthetic capture's
+    """What carving (:func:`~dbb_capture.static.rays.carve_mask`) does on a synthetic capture's
     dataset, from the mattes of its training crops: the share of the object sphere's lattice
     points (``res`` per axis) carved, the points inside the true object carved (ought to be
     none), and the share of the points further than 1.5 cells from the object that stay."""
-    from dbb_capture.static.field import build_ray_bank, carve_mask
-    from dbb_capture.synth.scene import load_ground_truth
+    from dbb_capture.static.rays import build_ray_bank, carve_mask
+    from dbb_capture.synth.capture import load_ground_truth
 
     ds = load_dataset(dataset)
     vol = ds.volume
@@ -261,7 +274,7 @@ def resplit_crops(dataset: Path, out: Path, every: int) -> Path:
     ``every``-th crop (0, every, ...) is held out instead of the last 20% of the capture's time:
     novel views between training views, as NeRF benchmarks hold out (lego: every 8th), rather
     than views past the end of the training path."""
-    from dbb_capture.datasets.records import find_dataset_file
+    from dbb_capture.datasets.transforms import find_dataset_file
 
     src = find_dataset_file(dataset)
     doc = json.loads(src.read_text())
@@ -330,7 +343,8 @@ def score_crops(dataset: Path, capture: Path, every: int = 8) -> dict:
     black and white (the object alone rendered through each crop camera at its time) and where
     the error lies (:func:`error_parts`), for the held-out crops of both protocols (the time
     split's test part, every ``every``-th crop), the time split's training crops and all."""
-    from dbb_capture.synth.scene import load_ground_truth, render_object_rgba
+    from dbb_capture.synth.capture import load_ground_truth
+    from dbb_capture.synth.render import render_object_rgba
 
     frames = load_dataset(dataset).frames
     _, _, model = load_ground_truth(capture)
@@ -367,7 +381,8 @@ def bench_capture(dataset: Path, capture: Path, run_dir: Path, minutes: float | 
     ``prune_weight``: the bake's weight pruning (None: the default); ``depth``: the octree's
     (None: matching the lattice)."""
     from dbb_capture.static.field import FieldConfig
-    from dbb_capture.synth.scene import load_ground_truth, render_object_rgba
+    from dbb_capture.synth.capture import load_ground_truth
+    from dbb_capture.synth.render import render_object_rgba
 
     if holdout_every:
         dataset = resplit_crops(dataset, run_dir.parent / f"{run_dir.name}.split{holdout_every}", holdout_every)
@@ -398,8 +413,8 @@ def bench_capture(dataset: Path, capture: Path, run_dir: Path, minutes: float | 
         rows.append(row)
         parts.append(error_parts(r.render(f.c2w, f.intr), gt))
         crop_parts.append(error_parts(crop, gt))
-    out = {"run": str(run_dir), "dataset": str(data), "train_minutes": run.meta["training"]["seconds"] / 60,
-           "steps": run.meta["training"]["steps"], "final_lattice": run.meta["field"]["final_res"],
+    out = {"run": str(run_dir), "dataset": str(data), "train_minutes": run.record.training.seconds / 60,
+           "steps": run.record.training.steps, "final_lattice": run.record.final_res,
            "heldout_views": len(test)}
     for k in rows[0] if rows else ():
         if k != "frame":
@@ -431,7 +446,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--truth", type=Path, default=None,
                     help="capture: train on the crops re-made from the ground truth, written to this folder")
     ap.add_argument("--field", type=json.loads, default=None,
-                    help='capture: FieldConfig settings to change, JSON, e.g. \'{"beta_alpha": 1e-3}\'')
+                    help='capture: FieldConfig settings to change, JSON, e.g. \'{"tv_density": 1e-4}\'')
     ap.add_argument("--crop-size", type=int, default=128, help="ceiling: crop side in pixels")
     ap.add_argument("--repeats", type=int, default=8)
     ap.add_argument("--json", type=Path, default=None, help="also write the figures here")

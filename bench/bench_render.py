@@ -1,5 +1,5 @@
-"""Render speed of the PlenOctree renderer (issue 4's rendering bars). Figures go to
-docs/benchmarks.md, section "PlenOctree (issue 4)". Run under ``flock /tmp/dbb-bench.lock``.
+"""Render speed of the PlenOctree renderer (the rendering bars; figures in docs/results.md).
+Run one benchmark at a time: timings of overlapping jobs say little.
 
     python bench/bench_render.py run RUN [RUN ...]   # trees of dbb-train plenoctree run folders
     python bench/bench_render.py shell               # a synthetic opaque-shell tree (no haze)
@@ -26,14 +26,21 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-from dbb_capture.geometry.cameras import Intrinsics
-from dbb_capture.geometry.transforms import look_at
-from dbb_capture.datasets.records import load_dataset
-from dbb_capture.geometry.cameras import scaled_intrinsics
-from dbb_capture.octree.render import PRUNE_WEIGHT, PlenOctree, TreeRenderer, build_tree
-from dbb_capture.static.run import RunConfig, evaluate_views, load_run, mean_of, split_frames
 from common import emit  # bench/ is the script folder: on sys.path
+
+from dbb_capture.datasets.transforms import load_dataset
+from dbb_capture.geometry.cameras import Intrinsics, scaled_intrinsics
+from dbb_capture.geometry.transforms import look_at
+from dbb_capture.octree.render import TreeRenderer
+from dbb_capture.octree.tree import PlenOctree, build_tree
+from dbb_capture.static.bake import PRUNE_WEIGHT
+from dbb_capture.static.run import (
+    RunConfig,
+    evaluate_views,
+    load_run,
+    mean_of,
+    split_frames,
+)
 
 
 def fps(renderer: TreeRenderer, c2w: np.ndarray, intr: Intrinsics, repeats: int) -> float:
@@ -48,14 +55,14 @@ def fps(renderer: TreeRenderer, c2w: np.ndarray, intr: Intrinsics, repeats: int)
 def cpu_seconds(renderer: TreeRenderer, c2w: np.ndarray, intr: Intrinsics, repeats: int) -> float:
     """CPU seconds per frame on one thread (best of ``repeats``): what other jobs on a shared
     machine change least. n idle cores give about n / this frames/s."""
-    threads, renderer.threads = renderer.threads, 1
+    threads, renderer.impl.threads = renderer.impl.threads, 1
     renderer.render(c2w, intr)
     best = math.inf
     for _ in range(repeats):
         t = time.process_time()
         renderer.render(c2w, intr)
         best = min(best, time.process_time() - t)
-    renderer.threads = threads
+    renderer.impl.threads = threads
     return best
 
 
@@ -73,7 +80,7 @@ def speeds(r: TreeRenderer, c2w: np.ndarray, base: Intrinsics, repeats: int) -> 
 def split(run) -> tuple[list, list]:
     """Training and held-out views of a run: the dataset's own split if it has one (synthetic
     crops), else every 8th held out (as the lego runs were trained)."""
-    return split_frames(load_dataset(Path(run.meta["dataset"])), RunConfig(holdout_every=8))
+    return split_frames(load_dataset(Path(run.record.dataset)), RunConfig(holdout_every=8))
 
 
 def heldout(run) -> list:
@@ -86,11 +93,11 @@ def rebake(run_dir: Path, out: Path, prune_weight: float) -> dict:
     benchmarked like the original)."""
     import torch
 
-    from dbb_capture.static.field import TrainState
-    from dbb_capture.octree.render import bake
+    from dbb_capture.static.bake import bake
+    from dbb_capture.static.train import TrainState
 
     run = load_run(run_dir)
-    st = TrainState.load(run_dir / "checkpoint.pt", torch.device("cpu"))
+    st = TrainState.load(run.checkpoint_path, torch.device("cpu"))
     t = time.perf_counter()
     tree = bake(st.field, cameras=[(f.c2w, f.intr) for f in split(run)[0]], prune_weight=prune_weight)
     return _write_tree(run_dir, out, tree, time.perf_counter() - t, prune_weight)
@@ -99,7 +106,7 @@ def rebake(run_dir: Path, out: Path, prune_weight: float) -> dict:
 def prune(run_dir: Path, out: Path, prune_weight: float) -> dict:
     """``run_dir``'s stored tree weight-pruned (:func:`prune_by_weight`, its training cameras)
     into the run folder ``out``: the bake's last step alone, so thresholds compare quickly."""
-    from dbb_capture.octree.render import prune_by_weight
+    from dbb_capture.static.bake import prune_by_weight
 
     run = load_run(run_dir)
     t = time.perf_counter()
@@ -125,13 +132,13 @@ def bench_run(run_dir: Path, repeats: int, with_psnr: bool, with_torch: bool) ->
     r = TreeRenderer(tree)
     out = {"run": str(run_dir), "tree_mb": run.tree_path.stat().st_size / 1e6,
            "leaves_with_data": tree.n_leaves_with_data(), "depth": tree.depth_limit,
-           "renderer_setup_s": time.perf_counter() - t, "threads": r.threads}
+           "renderer_setup_s": time.perf_counter() - t, "threads": r.impl.threads}
     out.update(speeds(r, test[0].c2w, test[0].intr, repeats))
     if with_torch:
         rt = TreeRenderer(tree, backend="torch")
         out["torch_fps_256"] = fps(rt, test[0].c2w, scaled_intrinsics(test[0].intr, test[0].intr.width / 256), 1)
     if with_psnr:
-        rows = evaluate_views(r, test, run.meta["training"]["downscale"], ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0)))
+        rows = evaluate_views(r, test, run.record.training.downscale, ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0)))
         out.update(heldout_views=len(test), psnr_white=mean_of(rows, "psnr_white"),
                    ssim_white=mean_of(rows, "ssim_white"), psnr_black=mean_of(rows, "psnr_black"))
     return out
@@ -159,7 +166,7 @@ def bench_shell(repeats: int) -> dict:
     base = Intrinsics(800, 800, f, f, 399.5, 399.5)
     c2w = look_at(np.array([0.0, -2.4, -0.7]), np.zeros(3), np.array([0.0, 0.0, -1.0]))   # 2.5 radii
     out = {"tree": "opaque shell, depth 7", "leaves_with_data": tree.n_leaves_with_data(),
-           "threads": r.threads}
+           "threads": r.impl.threads}
     out.update(speeds(r, c2w, base, repeats))
     return out
 

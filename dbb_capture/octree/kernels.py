@@ -217,8 +217,8 @@ def trace_rays(origins: np.ndarray, dirs: np.ndarray, rot: np.ndarray, inv: np.n
     of MB, and a lookup made where the walk finds it stalls the walk for a memory latency.
 
     With a non-empty ``wmax`` (K,) float32 the rays only record, per data row, the largest
-    weight any of them gave it (above ``w_eps``; what :func:`.octree.prune_by_weight` keeps
-    leaves by) and colour nothing; ``out`` then receives alpha only.
+    weight any of them gave it (above ``w_eps``; what the bake's weight pruning keeps leaves
+    by) and colour nothing; ``out`` then receives alpha only.
     """
     nb = (degree + 1) * (degree + 1)
     rsz = float(1 << BRICK_SHIFT)

@@ -1,15 +1,15 @@
-"""CPU training step of the object-mode voxel field: forward and backward in numba.
+"""The object-mode voxel field's CPU training step and renders: forward and backward in numba.
 
-The PyTorch path (:func:`.fields.render_rays` + autograd) spends most of a step building index
+The PyTorch path (:func:`.render.render_rays` + autograd) spends most of a step building index
 tensors, gathering 8 corner rows per sample and scattering gradients back through generic
 kernels; on 2 CPU cores that is ~1,000 rays/s at a 256^3 lattice. Here one ray is one loop:
 march, interpolate, composite, then walk the same samples back with the closed-form gradient of
 alpha compositing (as Plenoxels' CUDA kernel does), adding straight into the tables' gradient
 buffers and marking the rows touched for the lazy Adam step. The math matches
-:func:`.fields.render_rays` sample for sample (same sample positions, trilinear weights,
+:func:`.render.render_rays` sample for sample (same sample positions, trilinear weights,
 softplus density, sigmoid SH colour, colour only where the weight exceeds ``weight_eps``, rays
-cut once transmittance falls below it); ``tests/test_fields.py`` checks values and gradients
-against autograd.
+cut once transmittance falls below it); ``tests/static/test_kernels.py`` checks values and
+gradients against autograd.
 
 Rays run in parallel chunks (``prange``). Two rays of different threads that touch the same
 row at the same instant can lose one of the two gradient additions (no atomics on CPU arrays):
@@ -22,10 +22,13 @@ import math
 
 import numba
 import numpy as np
+import torch
 from numba import prange
 
-from .field import BETA_EPS, RAY_RUN
 from ..geometry.sh_numba import sh_basis_into
+from .field import VoxelField
+
+RAY_RUN = 32     # CPU training draws rays in runs of this many consecutive bank entries
 
 _FM = {"nsz", "arcp", "contract", "afn", "reassoc"}
 _CHUNK = RAY_RUN     # rays per parallel work item: one run of neighbouring pixels (scratch per chunk)
@@ -46,8 +49,7 @@ def render_rays_cpu(o: np.ndarray, d: np.ndarray, jitter: np.ndarray, bg: np.nda
                     ray_w: np.ndarray, index: np.ndarray, occ: np.ndarray, res: int, dens: np.ndarray, sh: np.ndarray,
                     gdens: np.ndarray, gsh: np.ndarray, touched_d: np.ndarray, touched_sh: np.ndarray,
                     act_shift: float, step: float, degree: int, active_degree: int, weight_eps: float,
-                    grad_scale: float,
-                    backward: bool, nearest: bool, beta_scale: float, out: np.ndarray) -> None:
+                    grad_scale: float, backward: bool, nearest: bool, out: np.ndarray) -> None:
     """Render rays over their backgrounds; with ``backward``, also add
     ``grad_scale * d(sum of squared errors)/d(table)`` into the gradient buffers.
 
@@ -55,7 +57,7 @@ def render_rays_cpu(o: np.ndarray, d: np.ndarray, jitter: np.ndarray, bg: np.nda
     directions, ``jitter`` (B,) in [0, 1) (sample offset in steps), ``bg`` / ``target`` (B, 3)
     background colour and composited target (``target`` unused without ``backward``);
     ``ray_w`` (B,) each ray's weight in the squared error (1: plain L2; robust training
-    lowers it for rays that keep disagreeing, :func:`.fields.robust_weights`).
+    lowers it for rays that keep disagreeing, :func:`.rays.robust_weights`).
     ``index`` (res^3,) int32 lattice -> row (-1: inactive, read as the sentinel row N),
     ``occ`` (res^3,) bool dilated occupancy. ``dens`` (N+1,), ``sh`` (N+1, 3*nb) float32
     tables; ``gdens``/``gsh`` their gradient buffers (added to), ``touched_d`` /
@@ -63,9 +65,8 @@ def render_rays_cpu(o: np.ndarray, d: np.ndarray, jitter: np.ndarray, bg: np.nda
     units. ``degree``: the tables' SH degree; only the bands up to ``active_degree`` are read
     and given a gradient (progressive SH). ``nearest``: a sample reads its nearest lattice
     point alone (piecewise constant, as the baked tree renders) instead of the 8 trilinear
-    corners. ``beta_scale``: with ``backward``, also add ``beta_scale * d(sum over rays of log(A + e) + log(1 - A + e))``,
-    ``A`` the ray's opacity, ``e`` = ``BETA_EPS``. ``out`` (B, 5) receives the composited
-    RGB, the opacity and the squared error summed over RGB.
+    corners. ``out`` (B, 5) receives the composited RGB, the opacity and the squared error
+    summed over RGB.
     """
     B = o.shape[0]
     nb = (degree + 1) * (degree + 1)
@@ -181,11 +182,6 @@ def render_rays_cpu(o: np.ndarray, d: np.ndarray, jitter: np.ndarray, bg: np.nda
             out[r, 4] = e0 * e0 + e1 * e1 + e2 * e2
             gw = 2 * grad_scale * ray_w[r]
             g0, g1, g2 = gw * e0, gw * e1, gw * e2
-            # The opacity prior: A = 1 - exp(-sum tau), so dA/dsigma_i = step * T for every sample.
-            gb = 0.0
-            if beta_scale != 0.0:
-                A = 1.0 - T
-                gb = beta_scale * (1.0 / (A + BETA_EPS) - 1.0 / (1.0 - A + BETA_EPS)) * step * T
             # Backward. With w_i = T_i a_i and R_i the colour behind sample i (background
             # included): dC/dsigma_i = step * (T_{i+1} c_i - R_i).
             A0, A1, A2 = 0.0, 0.0, 0.0
@@ -199,7 +195,7 @@ def render_rays_cpu(o: np.ndarray, d: np.ndarray, jitter: np.ndarray, bg: np.nda
                 A2 += wgt * c2
                 Tn = T_s[i] * (1.0 - a_s[i])
                 gs = step * (g0 * (Tn * c0 - (C0 - A0)) + g1 * (Tn * c1 - (C1 - A1))
-                             + g2 * (Tn * c2 - (C2 - A2))) + gb
+                             + g2 * (Tn * c2 - (C2 - A2)))
                 graw = gs * ds_s[i]
                 for cc in range(ncorner):
                     row = rows[i, cc]
@@ -231,7 +227,7 @@ def tv_grad(picks: np.ndarray, active: np.ndarray, index: np.ndarray, res: int, 
             sh: np.ndarray, gdens: np.ndarray, gsh: np.ndarray, touched_d: np.ndarray,
             touched_sh: np.ndarray, w_dens: float, w_sh: float) -> tuple[float, float]:
     """Total variation over the rows ``picks`` (n,) and their +x, +y, +z neighbours (inactive
-    ones not counted), as :func:`.fields.tv_loss`: the mean squared difference of density
+    ones not counted), as :func:`.train.tv_loss`: the mean squared difference of density
     and of SH coefficients. Adds ``w_dens`` / ``w_sh`` times their gradients; returns both means.
     ``active`` (N,) int64 lattice index of each row."""
     C = sh.shape[1]
@@ -272,3 +268,51 @@ def tv_grad(picks: np.ndarray, active: np.ndarray, index: np.ndarray, res: int, 
     return sd / m, ss / (m * C)
 
 
+
+
+def kernel_render(field: VoxelField, origins: torch.Tensor, dirs: torch.Tensor, bg: torch.Tensor,
+                  target: torch.Tensor | None, jitter: torch.Tensor, ray_w: torch.Tensor | None = None) -> np.ndarray:
+    """Run :func:`render_rays_cpu` on world rays: origins, unit directions (B, 3), backgrounds
+    (B, 3), sample offsets ``jitter`` (B,) in [0, 1). With ``target`` (B, 3) it also adds the
+    gradient of the mean squared error (each ray's term weighted by ``ray_w`` (B,), None: 1)
+    into the field's buffers. Returns (B, 5): RGB over ``bg``, alpha, squared error."""
+    if not field.cpu_kernel:
+        raise ValueError("the CPU kernel covers object mode on the CPU only")
+    o = ((origins - field.center) / field.radius).float().contiguous().numpy()
+    B = o.shape[0]
+    out = np.zeros((B, 5), np.float32)
+    tgt = target if target is not None else bg
+    w = np.ones(B, np.float32) if ray_w is None else ray_w.float().contiguous().numpy()
+    render_rays_cpu(o, dirs.float().contiguous().numpy(), jitter.float().contiguous().numpy(),
+                    bg.float().contiguous().numpy(), tgt.float().contiguous().numpy(), w,
+                    field.index.numpy(), field.occupancy().numpy(), field.res,
+                    field.density.data.numpy()[:, 0], field.sh.data.numpy(), field.density.grad.numpy()[:, 0],
+                    field.sh.grad.numpy(), field.density.touched.numpy(), field.sh.touched.numpy(),
+                    field.act_shift, field.step, field.cfg.sh_degree, field.sh_active, field.cfg.weight_eps,
+                    1.0 / (3 * B), target is not None, field.nearest, out)
+    return out
+
+
+def photometric_step(field: VoxelField, origins: torch.Tensor, dirs: torch.Tensor, bg: torch.Tensor,
+                     target: torch.Tensor, jitter: torch.Tensor,
+                     ray_w: torch.Tensor | None = None) -> tuple[torch.Tensor, np.ndarray]:
+    """The photometric loss of :func:`.render.render_rays` + MSE, without autograd: renders the
+    rays (B, 3) world origins / unit directions over ``bg`` (B, 3), compares with ``target``
+    (B, 3) and adds the gradient of the mean squared error (each ray's term weighted by
+    ``ray_w`` (B,) when given) into the field's gradient buffers (as ``backward`` would).
+    ``jitter`` (B,) in [0, 1) offsets the samples. Returns the unweighted MSE (0-d) and the
+    rays as rendered (B, 4): RGB over ``bg``, alpha."""
+    out = kernel_render(field, origins, dirs, bg, target, jitter, ray_w)
+    return torch.tensor(float(out[:, 4].sum()) / (3 * out.shape[0])), out[:, :4]
+
+
+def tv_step(field: VoxelField, n: int, gen: torch.Generator) -> tuple[float, float]:
+    """:func:`.train.tv_loss` without autograd: adds ``tv_density`` / ``tv_sh`` times its
+    gradient into the field's buffers; returns the two means."""
+    if field.n_active == 0:
+        return 0.0, 0.0
+    pick = torch.randint(0, field.n_active, (min(n, field.n_active),), generator=gen)
+    return tv_grad(pick.numpy(), field.active.numpy(), field.index.numpy(), field.res,
+                   field.density.data.numpy()[:, 0], field.sh.data.numpy(), field.density.grad.numpy()[:, 0],
+                   field.sh.grad.numpy(), field.density.touched.numpy(), field.sh.touched.numpy(),
+                   field.cfg.tv_density, field.cfg.tv_sh)

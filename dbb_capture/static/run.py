@@ -1,34 +1,50 @@
 """The static-object training stage: dataset -> voxel field -> PlenOctree run folder.
 
-A run folder (``dbb-train plenoctree DATASET -o RUN``) describes itself in ``run.json``:
+A run folder (``dbb-train plenoctree DATASET -o RUN``) describes itself in ``run.json``
+(:class:`RunRecord`):
 
 - ``tree.npz``: the PlenOctree, svox ``N3Tree`` format (``run.json: tree`` tells its data
   format, SH degree, colour activation, density units, depth and leaf lattice);
 - ``density_grid.npz``: world density (float16, per world unit) sampled on a regular grid over
   the object's cube (``sigma`` (G, G, G) indexed [x, y, z], ``bbox_min``, ``bbox_max``), for
   proxy meshes and previews;
-- ``checkpoint.pt``: the trained field, so ``--resume`` can train further;
+- ``checkpoint.pt``: the trained field, so a resumed run can train further;
 - ``report/``: ``curve.png`` (loss and PSNR over steps), ``heldout_*.png`` (render | truth on
   white: the tree for objects, the field for scenes), ``metrics.json``.
 - ``run.json: object`` is the object sphere in the dataset's world frame (board frame for
   captures) and whether it was estimated from the cameras.
 
 Checkpoints during training go to ``.<RUN>.work/`` beside RUN; an interrupted run resumes from
-there with ``--resume``, and the folder goes away once RUN is written.
+there, and the folder goes away once RUN is written.
 """
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import shutil
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from ..core.device import pick_device
+from ..core.errors import DbbError
+from ..core.metrics import psnr_from_mse
+from ..core.outputs import (
+    atomic_dir,
+    check_run_output,
+    read_json,
+    resume_checkpoint,
+    run_work_dir,
+    training_minutes,
+    write_bytes_atomic,
+    write_json,
+)
+from ..core.progress import progress
 from ..datasets.records import (
     Frame,
     ObjectVolume,
@@ -36,31 +52,20 @@ from ..datasets.records import (
     estimate_volume,
     holdout_every,
     holdout_named,
-    load_dataset,
 )
+from ..datasets.transforms import load_dataset
 from ..geometry.cameras import scaled_intrinsics
-from ..core.errors import DbbError
-from ..geometry.sh import COLOUR_ACTIVATION
-from .field import (
-    Budget,
-    FieldConfig,
-    TrainState,
-    VoxelField,
-    build_ray_bank,
-    frame_tensors,
-    lattice_for_views,
-    new_field,
-    render_image,
-    train,
-)
-from ..core.device import pick_device
-from ..core.metrics import psnr_from_mse
-from ..octree.render import PRUNE_WEIGHT, PlenOctree, TreeRenderer, bake
-from ..core.outputs import (atomic_dir, check_run_output, read_json, resume_checkpoint, run_work_dir,
-                      training_minutes, write_json)
-from ..core.progress import progress
+from ..octree.render import TreeRenderer
+from ..octree.tree import PlenOctree
+from .bake import PRUNE_WEIGHT, bake
+from .field import FieldConfig, VoxelField, lattice_for_views
+from .rays import build_ray_bank, frame_tensors
+from .render import render_image
+from .train import Budget, TrainState, new_field, train
 
 RUN_FORMAT = "dbb-plenoctree-run"
+RUN_VERSION = 2      # runs of other versions are refused: train them again
+TREE_FILE, DENSITY_GRID_FILE, CHECKPOINT_FILE, REPORT_DIR = "tree.npz", "density_grid.npz", "checkpoint.pt", "report"
 
 
 @dataclass
@@ -79,31 +84,147 @@ class RunConfig:
 
 
 @dataclass
+class TreeRecord:
+    """``run.json: tree``: the baked PlenOctree (svox N3Tree npz, density per world unit, leaves
+    outside the object sphere trimmed)."""
+
+    file: str                 # the tree's file in the run folder
+    data_format: str          # "SH9" ...
+    sh_degree: int
+    colour_activation: str
+    depth_limit: int
+    nodes: int
+    leaves_with_data: int
+    bytes: int                # size of the file
+    prune_weight: float       # the bake's weight pruning (0: none)
+
+    @property
+    def leaf_resolution(self) -> int:
+        """Leaves per axis of the finest lattice."""
+        return 1 << (self.depth_limit + 1)
+
+    def to_json(self) -> dict:
+        return {"file": self.file, "format": "svox N3Tree npz", "data_format": self.data_format,
+                "sh_degree": self.sh_degree, "colour_activation": self.colour_activation,
+                "density_units": "per world unit", "depth_limit": self.depth_limit,
+                "leaf_resolution": self.leaf_resolution, "nodes": self.nodes,
+                "leaves_with_data": self.leaves_with_data, "bytes": self.bytes, "prune_weight": self.prune_weight,
+                "bounds_note": "leaves outside the object sphere are trimmed"}
+
+
+@dataclass
+class TrainingRecord:
+    """``run.json: training``: how long and on what the field trained."""
+
+    steps: int
+    seconds: float                   # training time over every resume
+    last_wall_seconds: float         # wall-clock time of the last call: its training, bake and report
+    budget_minutes: float | None
+    budget_steps: int | None
+    downscale: float
+    device: str
+    train_frames: int
+    test_frames: int
+    final_train_psnr: float | None   # running mean over the last steps (dB)
+
+
+@dataclass
+class RunRecord:
+    """``run.json`` of a PlenOctree run folder (format :data:`RUN_FORMAT`, version
+    :data:`RUN_VERSION`): where the run came from, its tree, its field and training, the report's
+    metrics (``report/metrics.json``). The file also names its other files (constant names)."""
+
+    dataset: str              # the dataset path, absolute
+    dataset_file: str         # its json file's name
+    dataset_kind: str         # "crops", "transforms" or "blender"
+    mode: str                 # "object" or "scene"
+    volume: ObjectVolume      # run.json: object
+    tree: TreeRecord
+    field: FieldConfig        # the field's settings as trained ...
+    final_res: int            # ... its final lattice per axis ...
+    active_points: int        # ... and active points (all three in run.json: field)
+    training: TrainingRecord
+    metrics: dict
+
+    def to_json(self) -> dict:
+        return {
+            "format": RUN_FORMAT, "version": RUN_VERSION,
+            "dataset": self.dataset, "dataset_file": self.dataset_file, "dataset_kind": self.dataset_kind,
+            "mode": self.mode, "object": self.volume.to_json(), "tree": self.tree.to_json(),
+            "density_grid": {"file": DENSITY_GRID_FILE, "units": "per world unit",
+                             "layout": "sigma[x, y, z] at cell centres of [bbox_min, bbox_max]"},
+            "checkpoint": CHECKPOINT_FILE,
+            "field": asdict(self.field) | {"final_res": self.final_res, "active_points": self.active_points},
+            "training": asdict(self.training), "metrics": self.metrics, "report": REPORT_DIR + "/",
+        }
+
+    @classmethod
+    def from_json(cls, d: object, where: Path) -> RunRecord:
+        """The record of ``run.json`` content ``d`` of the run folder ``where``; one clear
+        :class:`DbbError` for another format, another version or a missing entry."""
+        if not isinstance(d, dict) or d.get("format") != RUN_FORMAT:
+            got = d.get("format") if isinstance(d, dict) else None
+            raise DbbError(f"{where} is not a PlenOctree run (run.json format {got!r})")
+        if d.get("version") != RUN_VERSION:
+            raise DbbError(f"{where} is a PlenOctree run of another version ({d.get('version')}, this toolkit "
+                           f"reads {RUN_VERSION}): train it again")
+        t = _entries(d, [f.name for f in fields(TreeRecord)], where, "tree")
+        o = _entries(d, ("center", "radius", "estimated"), where, "object")
+        fd = _entries(d, [f.name for f in fields(FieldConfig)] + ["final_res", "active_points"], where, "field")
+        tr = _entries(d, [f.name for f in fields(TrainingRecord)], where, "training")
+        top = _entries(d, ("dataset", "dataset_file", "dataset_kind", "mode", "metrics"), where)
+        try:
+            final_res, active = int(fd.pop("final_res")), int(fd.pop("active_points"))
+            return cls(
+                str(top["dataset"]), str(top["dataset_file"]), str(top["dataset_kind"]), str(top["mode"]),
+                ObjectVolume(tuple(float(v) for v in o["center"]), float(o["radius"]), bool(o["estimated"])),
+                TreeRecord(**t), FieldConfig(**(fd | {"upsample_at": tuple(fd["upsample_at"])})), final_res, active,
+                TrainingRecord(**tr), dict(top["metrics"]))
+        except (TypeError, ValueError) as e:
+            raise DbbError(f"{where}/run.json is not a valid PlenOctree run record ({e})") from None
+
+
+def _entries(d: dict, names, where: Path, key: str | None = None) -> dict:
+    """The entries ``names`` of run.json content ``d`` (of its object ``key`` if given); a
+    missing one is named in a :class:`DbbError`."""
+    sec = d if key is None else d.get(key)
+    for n in names:
+        if not isinstance(sec, dict) or n not in sec:
+            what = n if key is None else f"{key}.{n}"
+            raise DbbError(f"{where}/run.json lacks {what}: is it a finished PlenOctree run?")
+    return {n: sec[n] for n in names}
+
+
+@dataclass
 class Run:
     """A finished run folder, read back."""
 
     path: Path
-    meta: dict
+    record: RunRecord
 
     @property
     def tree_path(self) -> Path:
-        return self.path / self.meta["tree"]["file"]
+        return self.path / self.record.tree.file
+
+    @property
+    def density_grid_path(self) -> Path:
+        return self.path / DENSITY_GRID_FILE
+
+    @property
+    def checkpoint_path(self) -> Path:
+        return self.path / CHECKPOINT_FILE
 
     @property
     def volume(self) -> ObjectVolume:
-        o = self.meta["object"]
-        return ObjectVolume(tuple(o["center"]), float(o["radius"]), bool(o.get("estimated", False)))
+        return self.record.volume
 
     def tree(self) -> PlenOctree:
         return PlenOctree.load(self.tree_path)
 
 
 def load_run(path: Path) -> Run:
-    """Read ``run.json`` of a PlenOctree run folder (clear error if it is not one)."""
-    meta = read_json(Path(path) / "run.json", "run description")
-    if meta.get("format") != RUN_FORMAT:
-        raise DbbError(f"{path} is not a PlenOctree run (run.json format {meta.get('format')!r})")
-    return Run(Path(path), meta)
+    """Read ``run.json`` of a PlenOctree run folder (clear error if it is not one of this version)."""
+    return Run(Path(path), RunRecord.from_json(read_json(Path(path) / "run.json", "run description"), Path(path)))
 
 
 def split_frames(ds: PosedDataset, cfg: RunConfig) -> tuple[list[Frame], list[Frame]]:
@@ -127,8 +248,7 @@ def for_tree_depth(fcfg: FieldConfig, depth: int | None) -> FieldConfig:
     """The field's settings for a tree of ``depth``: a tree whose leaves (2^(depth+1) per axis) are
     finer than the lattice samples the trilinear field, so the nearest-lookup fine-tuning (which
     trains the lattice's piecewise-constant cells, as a tree at the lattice's own depth renders
-    them) is left out. 640x480 static capture, 128^3 lattice baked at depth 7: +0.3 dB on white
-    (docs/benchmarks.md, issue 4, tenth session)."""
+    them) is left out (docs/decisions.md, ``--depth 7``)."""
     if depth is not None and fcfg.res_max is not None and (1 << (depth + 1)) > fcfg.res_max:
         return replace(fcfg, nearest_from=1.0)
     return fcfg
@@ -136,22 +256,23 @@ def for_tree_depth(fcfg: FieldConfig, depth: int | None) -> FieldConfig:
 
 def train_run(dataset: Path, out: Path, cfg: RunConfig, field_cfg: FieldConfig | None = None,
               resume: bool = False, overwrite: bool = False, quiet: bool = False) -> Run:
-    """Train a field on ``dataset``, bake it, and write the run folder ``out`` (atomically)."""
+    """Train a field on ``dataset``, bake it, and write the run folder ``out`` (atomically).
+    With ``resume``, training continues from the checkpoint of ``out`` (interrupted or finished)."""
     out = Path(out)
     check_run_output(out, overwrite, resume)
     cfg = replace(cfg, minutes=training_minutes(cfg.minutes, cfg.steps, default=10.0))
     if cfg.downscale < 1:
-        raise DbbError("--downscale must be >= 1")
+        raise DbbError("the downscale factor must be at least 1")
     ds = load_dataset(Path(dataset))
     train_f, test_f = split_frames(ds, cfg)
     mode = cfg.mode if cfg.mode != "auto" else ("object" if ds.rgba else "scene")
     volume = ds.volume or estimate_volume(ds.frames)
     device = pick_device()
     work = run_work_dir(out)
-    ckpt = work / "checkpoint.pt"
+    ckpt = work / CHECKPOINT_FILE
     state = None
     if resume:
-        state = TrainState.load(resume_checkpoint(out), device)
+        state = TrainState.load(resume_checkpoint(out, CHECKPOINT_FILE), device)
         volume = state.field.volume
         mode = state.field.cfg.mode
     fcfg = field_cfg or FieldConfig()
@@ -181,40 +302,25 @@ def train_run(dataset: Path, out: Path, cfg: RunConfig, field_cfg: FieldConfig |
     del bank
     tree = bake(state.field, cfg.depth, cameras=[(f.c2w, f.intr) for f in train_f], prune_weight=cfg.prune_weight)
     with atomic_dir(out, overwrite=True) as tmp:
-        nbytes = tree.save(tmp / "tree.npz")
-        shutil.copyfile(ckpt, tmp / "checkpoint.pt")
-        write_density_grid(state.field, tmp / "density_grid.npz")
+        nbytes = tree.save(tmp / TREE_FILE)
+        shutil.copyfile(ckpt, tmp / CHECKPOINT_FILE)
+        write_density_grid(state.field, tmp / DENSITY_GRID_FILE)
         metrics = write_report(state, tree, test_f or train_f[:: max(1, len(train_f) // 4)],
-                               cfg, tmp / "report", heldout=bool(test_f))
-        meta = {
-            "format": RUN_FORMAT, "version": 1,
-            "dataset": str(Path(dataset).resolve()), "dataset_file": ds.source.name,
-            "dataset_kind": ds.kind, "mode": mode,
-            "object": volume.to_json(),
-            "tree": {"file": "tree.npz", "format": "svox N3Tree npz", "data_format": tree.data_format,
-                     "sh_degree": tree.sh_degree, "colour_activation": COLOUR_ACTIVATION,
-                     "density_units": "per world unit", "depth_limit": tree.depth_limit,
-                     "leaf_resolution": 1 << (tree.depth_limit + 1), "nodes": tree.n_nodes,
-                     "leaves_with_data": tree.n_leaves_with_data(), "bytes": nbytes,
-                     "prune_weight": cfg.prune_weight,
-                     "bounds_note": "leaves outside the object sphere are trimmed"},
-            "density_grid": {"file": "density_grid.npz", "units": "per world unit",
-                             "layout": "sigma[x, y, z] at cell centres of [bbox_min, bbox_max]"},
-            "checkpoint": "checkpoint.pt",
-            "field": asdict(state.field.cfg) | {"final_res": state.field.res,
-                                                "active_points": state.field.n_active},
-            "training": {"steps": state.step, "seconds": round(state.seconds, 1),
-                         "wall_seconds_this_session": round(time.perf_counter() - t0, 1),
-                         "budget_minutes": cfg.minutes, "budget_steps": cfg.steps,
-                         "downscale": cfg.downscale, "device": str(device),
-                         "train_frames": len(train_f), "test_frames": len(test_f),
-                         "final_train_psnr": state.history[-1]["psnr"] if state.history else None},
-            "metrics": metrics,
-            "report": "report/",
-        }
-        write_json(tmp / "run.json", meta)
+                               cfg, tmp / REPORT_DIR, heldout=bool(test_f))
+        record = RunRecord(
+            dataset=str(Path(dataset).resolve()), dataset_file=ds.source.name, dataset_kind=ds.kind, mode=mode,
+            volume=volume,
+            tree=TreeRecord(TREE_FILE, tree.data_format, tree.sh_degree, tree.colour_activation, tree.depth_limit,
+                            tree.n_nodes, tree.n_leaves_with_data(), nbytes, cfg.prune_weight),
+            field=state.field.cfg, final_res=state.field.res, active_points=state.field.n_active,
+            training=TrainingRecord(
+                state.step, round(state.seconds, 1), round(time.perf_counter() - t0, 1), cfg.minutes, cfg.steps,
+                cfg.downscale, str(device), len(train_f), len(test_f),
+                state.history[-1]["psnr"] if state.history else None),
+            metrics=metrics)
+        write_json(tmp / "run.json", record.to_json())
     shutil.rmtree(work, ignore_errors=True)
-    return Run(out, meta)
+    return Run(out, record)
 
 
 @torch.no_grad()
@@ -232,9 +338,6 @@ def write_density_grid(field: VoxelField, path: Path, max_res: int = 256) -> Non
     r = np.float32(field.radius)
     buf = {"sigma": sig.numpy().astype(np.float16), "bbox_min": c - r, "bbox_max": c + r,
            "units": np.array("per world unit")}
-    import io
-
-    from ..core.outputs import write_bytes_atomic
     b = io.BytesIO()
     np.savez_compressed(b, **buf)
     write_bytes_atomic(path, b.getvalue())

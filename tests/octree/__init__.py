@@ -1,0 +1,1 @@
+"""Tests of dbb_capture.octree: the PlenOctree format, its renderers and the numba walk."""

@@ -1,0 +1,95 @@
+"""The run folder: dbb-train plenoctree writes a self-describing run, its typed record reads it
+back, and runs of another version are refused."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from dbb_capture.cli.train import main
+
+from dbb_capture.core.errors import DbbError
+from dbb_capture.datasets.transforms import write_transforms
+from dbb_capture.static.field import FieldConfig
+from dbb_capture.static.run import RUN_VERSION, RunRecord, for_tree_depth, load_run
+
+from .synthetic import synthetic_object_frames
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("run_dataset")
+    frames, vol = synthetic_object_frames(folder, n=12, size=24, seed=2)
+    write_transforms(folder / "transforms.json", frames, vol)
+    return folder, vol
+
+
+def test_cli_writes_a_self_describing_run_and_rejects_bad_input(dataset, tmp_path):
+    data, vol = dataset
+    run = tmp_path / "run"
+    args = ["plenoctree", str(data), "-o", str(run), "--steps", "8", "--res-max", "16", "--batch-rays", "256"]
+    res = CliRunner().invoke(main, args)
+    assert res.exit_code == 0, res.output
+    meta = json.loads((run / "run.json").read_text())
+    assert (meta["format"], meta["version"]) == ("dbb-plenoctree-run", RUN_VERSION)
+    assert meta["mode"] == "object" and meta["tree"]["colour_activation"] == "sigmoid"
+    # A transforms dataset's alpha is the truth: no carving or robust training unless asked for.
+    assert meta["field"]["carve_share"] == 0.0 and meta["field"]["robust_from"] == 1.0
+    assert meta["object"]["radius"] == pytest.approx(vol.radius)
+    loaded = load_run(run)
+    rec = loaded.record
+    assert RunRecord.from_json(meta, run) == rec and json.loads(json.dumps(rec.to_json())) == meta
+    assert rec.field.res_max == 16 and rec.final_res == 16 and rec.training.steps == 8
+    assert rec.tree.leaf_resolution == 1 << (rec.tree.depth_limit + 1)
+    assert loaded.tree().data_format == rec.tree.data_format == "SH9"
+    for name in ("tree.npz", "density_grid.npz", "checkpoint.pt", "report/curve.png", "report/metrics.json"):
+        assert (run / name).is_file(), name
+    assert loaded.density_grid_path.is_file() and loaded.checkpoint_path.is_file()
+    g = np.load(run / "density_grid.npz")
+    assert g["sigma"].shape == (16, 16, 16)
+    assert CliRunner().invoke(main, args).exit_code == 2                     # exists, no --overwrite
+    res = CliRunner().invoke(main, args + ["--resume", "--steps", "10"])      # continue the same run
+    assert res.exit_code == 0, res.output
+    assert load_run(run).record.training.steps == 10
+    assert CliRunner().invoke(main, ["plenoctree", str(data / "nope"), "-o", str(tmp_path / "r2")]).exit_code == 2
+    assert CliRunner().invoke(main, args[:3] + [str(tmp_path / "r5"), "--downscale", "0.5"]).exit_code == 2
+    # Carving and robust training from the command line, recorded with the field's settings.
+    more = ["--carve", "0.2", "--robust-from", "0.5"]
+    res = CliRunner().invoke(main, args[:3] + [str(tmp_path / "r3")] + args[4:] + more)
+    assert res.exit_code == 0, res.output
+    assert (load_run(tmp_path / "r3").record.field.carve_share, load_run(tmp_path / "r3").record.field.robust_from) \
+        == (0.2, 0.5)
+    assert CliRunner().invoke(main, args[:3] + [str(tmp_path / "r4"), "--carve", "2"]).exit_code == 2
+
+
+def test_runs_of_another_version_or_damaged_records_are_refused(dataset, tmp_path):
+    """A run of format version 1 (before this one) is refused with one line saying to train it
+    again, by the record, by --resume and by dbb-export bundle; a damaged record is named."""
+    from dbb_capture.cli.export import main as export_main
+
+    data, _ = dataset
+    run = tmp_path / "run"
+    args = ["plenoctree", str(data), "-o", str(run), "--steps", "4", "--res-max", "16", "--batch-rays", "256"]
+    assert CliRunner().invoke(main, args).exit_code == 0
+    meta = json.loads((run / "run.json").read_text())
+    (run / "run.json").write_text(json.dumps(meta | {"version": 1}))
+    with pytest.raises(DbbError, match="train it again"):
+        load_run(run)
+    res = CliRunner().invoke(export_main, ["bundle", str(run), "-o", str(tmp_path / "b")])
+    assert res.exit_code == 2 and "train it again" in res.output and len(res.output.strip().splitlines()) == 1
+    del meta["tree"]["nodes"]
+    (run / "run.json").write_text(json.dumps(meta))
+    with pytest.raises(DbbError, match="lacks tree.nodes"):
+        load_run(run)
+    (run / "run.json").write_text(json.dumps({"format": "something else"}))
+    with pytest.raises(DbbError, match="not a PlenOctree run"):
+        load_run(run)
+
+
+def test_a_tree_finer_than_the_lattice_skips_the_nearest_lookup_phase():
+    cfg = FieldConfig(res_max=128)
+    assert for_tree_depth(cfg, 7).nearest_from == 1.0           # 256^3 leaves sample the trilinear field
+    assert for_tree_depth(cfg, 6).nearest_from == cfg.nearest_from   # 128^3 leaves: the lattice's own cells
+    assert for_tree_depth(cfg, None) == cfg
