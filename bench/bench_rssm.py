@@ -6,22 +6,22 @@
              PSNR vs copy-first and "near", and the motion-energy ratio of a 150-step rollout at
              a still viewpoint; with --capture (the synthetic capture behind the dataset) the
              truth of that ratio is the ground-truth object rendered at the still viewpoint
-             .venv/bin/dbb-capture preprocess sample_data/dynamic -o /tmp/dyn_ds --background-minutes 1
-             .venv/bin/python bench/bench_rssm.py quality /tmp/dyn_ds --capture sample_data/dynamic \
-                 --run /tmp/rssm_run --minutes 15
+             .venv/bin/dbb-capture preprocess sample_data/dynamic -o dyn_ds --background-minutes 1
+             .venv/bin/python bench/bench_rssm.py quality dyn_ds --capture sample_data/dynamic \
+                 --run rssm_run --minutes 15
     protocols: the gain over copy-first of one sampled rollout (the run-time protocol, the bar's),
              of the mean of 8 and of the best of 8 (extra, labelled: no run-time stepper draws those)
-             .venv/bin/python bench/bench_rssm.py protocols /tmp/rssm_run /tmp/dyn_ds
+             .venv/bin/python bench/bench_rssm.py protocols rssm_run dyn_ds
     subset:  the same dataset trained on less footage (the first --seconds; same test split)
-             .venv/bin/python bench/bench_rssm.py subset /tmp/long_ds --seconds 24 -o /tmp/long_24s
+             .venv/bin/python bench/bench_rssm.py subset long_ds --seconds 24 -o long_24s
     first-step: what the run-time first step loses against copying (its candidates, mask, flow)
-             .venv/bin/python bench/bench_rssm.py first-step /tmp/rssm_run /tmp/dyn_ds
+             .venv/bin/python bench/bench_rssm.py first-step rssm_run dyn_ds
     motion:  where the still-view motion goes: the energy ratio per block of steps at temperatures
              0 / 1 / 2 (0 = the prior mean: motion the deterministic path carries) and per
              open-loop step on the test windows
-             .venv/bin/python bench/bench_rssm.py motion /tmp/rssm_run /tmp/dyn_ds --capture sample_data/dynamic
+             .venv/bin/python bench/bench_rssm.py motion rssm_run dyn_ds --capture sample_data/dynamic
     blurred-copy: what copy-first blurred more at each step (a hedge that never moves) scores
-             .venv/bin/python bench/bench_rssm.py blurred-copy /tmp/dyn_ds --sigma 0.5 --sigma 1
+             .venv/bin/python bench/bench_rssm.py blurred-copy dyn_ds --sigma 0.5 --sigma 1
 
 Take timing figures under ``flock /tmp/dbb-bench.lock`` on a shared machine.
 """
@@ -38,14 +38,27 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dbb_capture.dynamic import rssm as rssm
+from dbb_capture.core.errors import DbbError
+from dbb_capture.core.metrics import psnr
+from dbb_capture.dynamic.config import RssmConfig, TrainConfig, apply_preset, configs_from_settings
+from dbb_capture.dynamic.data import batch as window_batch
+from dbb_capture.dynamic.data import load_sequences
+from dbb_capture.dynamic.evaluate import evaluate as evaluate_stepper
+from dbb_capture.dynamic.evaluate import motion_coherence
+from dbb_capture.dynamic.model import Rssm, decoder_input, sample
+from dbb_capture.dynamic.networks import warp_maps
+from dbb_capture.dynamic.rgba import premultiplied, premultiply
+from dbb_capture.dynamic.record import RunRecord
+from dbb_capture.dynamic.run import eval_run, load_model, resume_configs, run_eval, train_run
+from dbb_capture.dynamic.stepper import Stepper, rollout, script_stepper
+from dbb_capture.dynamic.views import view_delta_encoding
 
 
-def speed(size: int, steps: int = 300, settings: list[str] = (), repeat: int = 1) -> dict:
+def speed(size: int, steps: int = 300, settings: list[str] = (), repeat: int = 1, preset: str | None = None) -> dict:
     """Frames per second of the TorchScript stepper (batch 1) over ``steps`` steps, ``repeat`` times:
     the median, and every repetition (a shared machine's timings vary by tens of per cent)."""
-    model = rssm.Rssm(replace(overrides(list(settings))[0], size=size)).eval()
-    ts = rssm.script_stepper(model)
+    model = Rssm(replace(overrides(list(settings), preset=preset)[0], size=size)).eval()
+    ts = script_stepper(model)
     with torch.no_grad():
         h, z = ts.start(torch.rand(1, 4, size, size), torch.tensor([[30.0, 40.0, 0.7]]))
         view = torch.tensor([[30.0, 40.0, 0.7]])
@@ -76,7 +89,8 @@ def still_truth(dataset: Path, capture: Path, steps: int = 150, samples: int = 2
     """
     from dbb_capture.geometry.cameras import Intrinsics
     from dbb_capture.geometry.conventions import opencv_from_opengl
-    from dbb_capture.synth.scene import load_ground_truth, render_object_rgba
+    from dbb_capture.synth.capture import load_ground_truth
+    from dbb_capture.synth.render import render_object_rgba
 
     doc = json.loads((Path(dataset) / "crops.json").read_text())
     frames = doc["frames"]
@@ -87,59 +101,51 @@ def still_truth(dataset: Path, capture: Path, steps: int = 150, samples: int = 2
     fps = 1.0 / float(np.median(np.diff([fr["time"] for fr in frames])))
     _, _, obj = load_ground_truth(capture)
     truth = np.stack([render_object_rgba(obj, intr, c2w, f["time"] + j / fps, samples) for j in range(1, steps + 1)])
-    data = rssm.load_sequences(dataset, int(f["w"]))
+    data = load_sequences(dataset, int(f["w"]))
     vp = f["viewpoint"]
     return {"first": data.rgba[k], "view": np.array([vp["azimuth_deg"], vp["elevation_deg"], vp["distance_m"]],
                                                       np.float32), "truth": truth, "frame": k}
 
 
-def with_settings(model: rssm.Rssm, settings: list[str]) -> rssm.Rssm:
+def with_settings(model: Rssm, settings: list[str]) -> Rssm:
     """``model`` rebuilt with other settings (``NAME=VALUE``) and the same weights: for settings
-    that leave the weights' shapes alone, e.g. ``flow_snap`` tried on a model trained without it."""
+    that leave the weights' shapes alone, e.g. ``warp_leak`` tried on a model trained with another."""
     if not settings:
         return model
-    cfg, _ = rssm.configs_from_settings(list(settings), model.cfg)
-    out = rssm.Rssm(cfg)
+    cfg, _ = configs_from_settings(list(settings), model.cfg)
+    out = Rssm(cfg)
     out.load_state_dict(model.state_dict())
     return out.eval()
 
 
-def last_model(run: Path) -> rssm.Rssm:
-    """The last trained model of a run (its checkpoint), where model.pt is the selected one."""
-    ck = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=False)
-    model = rssm.Rssm(rssm.RssmConfig.from_json(ck["config"]))
-    model.load_state_dict(ck["model"])
-    return model.eval()
-
-
 def evaluate(run: Path, dataset: Path, still: dict | None, temperature: float, name: str,
-             model: rssm.Rssm | None = None) -> dict:
+             model: Rssm | None = None) -> dict:
     """Evaluate a run folder (again; its model.pt unless ``model``) at ``temperature``, into
     ``run/name``; the report's figures."""
-    model = model if model is not None else rssm.load_model(run)
-    data = rssm.load_sequences(dataset, model.cfg.size)
+    model = model if model is not None else load_model(run)
+    data = load_sequences(dataset, model.cfg.size)
     ck = run / "checkpoint.pt"
     history = torch.load(ck, weights_only=False)["history"] if ck.is_file() else []
     kw = {} if still is None else {"still_truth": still["truth"], "still_start": (still["first"], still["view"])}
-    ev = rssm.run_eval(model, data, run / name, history, temperature=temperature, **kw).to_json()
+    ev = run_eval(model, data, run / name, history, temperature=temperature, **kw).to_json()
     return {"temperature": temperature, "mean_psnr_db": ev["mean_psnr_db"], "psnr_gain_db": ev["psnr_gain_db"],
             "mean_ssim": ev["mean_ssim"], "psnr_per_step": ev["psnr_db"], "motion": ev["motion"],
             "report": str(run / name)}
 
 
 def train_test_gap(run: Path, dataset: Path, temperature: float, windows: int = 40,
-                   model: rssm.Rssm | None = None) -> dict:
+                   model: Rssm | None = None) -> dict:
     """Mean open-loop PSNR gain over copy-first on training windows and on held-out ones (dB).
 
     A model that fits its training windows far better than held-out ones has learned which pose
     goes with which training view and window, not how the toy moves.
     """
-    model = model if model is not None else rssm.load_model(run)
-    data = rssm.load_sequences(dataset, model.cfg.size)
+    model = model if model is not None else load_model(run)
+    data = load_sequences(dataset, model.cfg.size)
     out = {}
     for split in ("train", "test"):
         sub = replace(data, windows=[(s, "test") for s, sp in data.windows if sp == split])
-        rep, _ = rssm.evaluate(rssm.Stepper(model, temperature), sub, max_windows=windows, rollout_steps=3)
+        rep, _ = evaluate_stepper(Stepper(model, temperature), sub, max_windows=windows, rollout_steps=3)
         out[split] = round(rep.mean("psnr", "model") - rep.mean("psnr", "copy_first"), 3)
     return out
 
@@ -150,94 +156,86 @@ def blurred_copy(dataset: Path, sigma: float, size: int = 64) -> dict:
     (grows less sure, never moves) scores against the bar."""
     import cv2
 
-    data = rssm.load_sequences(dataset, size)
+    data = load_sequences(dataset, size)
     starts = data.starts("test")
     idx = starts[:, None] + np.arange(data.length)[None]
-    truth = rssm._pm_np(data.rgba[idx])                                   # (W, L, S, S, 4)
+    truth = premultiplied(data.rgba[idx])                                   # (W, L, S, S, 4)
     gains = []
     for t in range(1, data.length):
         s = sigma * np.sqrt(t)
         blur = [cv2.GaussianBlur(truth[w, 0], (0, 0), s) if s > 0 else truth[w, 0] for w in range(len(starts))]
-        gains.append(np.mean([rssm.psnr(b, truth[w, t]) for w, b in enumerate(blur)])
-                     - np.mean([rssm.psnr(truth[w, 0], truth[w, t]) for w in range(len(starts))]))
+        gains.append(np.mean([psnr(b, truth[w, t]) for w, b in enumerate(blur)])
+                     - np.mean([psnr(truth[w, 0], truth[w, t]) for w in range(len(starts))]))
     return {"sigma_px_times_sqrt_step": sigma, "windows": len(starts), "gain_per_step_db": [round(g, 3) for g in gains],
             "gain_db": round(float(np.mean(gains)), 3)}
 
 
 @torch.no_grad()
 def first_step(run: Path, dataset: Path, split: str = "test", temperature: float = 1.0, seed: int = 0,
-               model: rssm.Rssm | None = None) -> dict:
+               model: Rssm | None = None) -> dict:
     """What the run-time first step does on the windows of ``split`` (one sampled z_1 per window, as
     ``dbb-export render``): PSNR (dB) of the frame, of copy-first, and of the decoder's candidates
-    alone (the warped context frame with mask 1, the generated content with mask 0, the context
-    frame as is), the mean warp share on the object (truth or context alpha > 0.5) and the flow's
-    mean and 95th-percentile length in pixels there (skip path only)."""
-    model = (model if model is not None else rssm.load_model(run)).eval()
+    alone (the warped context frame with warp share 1, the generated content with share 0), the mean
+    warp share on the object (truth or context alpha > 0.5) and the step flow's mean and
+    95th-percentile length in pixels there."""
+    model = (model if model is not None else load_model(run)).eval()
     cfg = model.cfg
-    data = rssm.load_sequences(dataset, cfg.size)
+    data = load_sequences(dataset, cfg.size)
     starts = data.starts(split)
-    x, views = rssm._batch(data, starts, torch.device("cpu"))          # premultiplied (W, L, 4, S, S)
+    x, views = window_batch(data, starts, torch.device("cpu"))          # premultiplied (W, L, 4, S, S)
     torch.manual_seed(seed)
-    pe = rssm.view_encoding(views, cfg.view_freqs)
-    emb = model.encoder(x[:, 0])
+    pe = model.encode_view(views)
     h0 = x.new_zeros(len(starts), cfg.deter)
-    qm, qs = model.post_stats(h0, emb, pe[:, 0])
-    z0 = qm + temperature * qs * torch.randn_like(qs)
+    z0 = sample(*model.post_stats(h0, model.encoder(x[:, 0]), pe[:, 0]), temperature)
     h1 = model.transition(h0, z0)
-    pm, ps = model.prior_stats(h1)
-    z1 = pm + temperature * ps * torch.randn_like(ps)
-    ctx = model.encoder.context(x[:, 0])
-    dec = model.decoder
-    feat = rssm.decoder_features(h1, z1, pe[:, 1], pe[:, 0], cfg.skip, cfg.decoder_view, cfg.view_freqs,
-                                 pe[:, 0] if dec.accum else None)
-    frame = model.decoder(feat, ctx, x[:, 0])
-    truth, ctx_pm = x[:, 1].numpy(), x[:, 0]
-    ps_ = lambda a: float(np.mean([rssm.psnr(p, t) for p, t in zip(np.asarray(a), truth)]))
-    out = {"windows": len(starts), "split": split, "psnr_db": ps_(frame), "copy_first_db": ps_(ctx_pm)}
-    if cfg.skip:
-        xh = dec.heads(feat, ctx)
-        flow = rssm.snap_flow(torch.tanh(xh[:, -2:]) * (dec.max_step_flow if dec.accum else dec.max_flow),
-                              dec.flow_snap)
-        grid = dec.grid + flow.permute(0, 2, 3, 1)
-        warped = torch.nn.functional.grid_sample(ctx_pm, grid, mode="bilinear", padding_mode="zeros",
-                                                 align_corners=False)
-        gen = torch.sigmoid(xh[:, :4])
-        gen = torch.cat([gen[:, :3] * gen[:, 3:4], gen[:, 3:4]], 1)
-        obj = ((x[:, 1, 3] > 0.5) | (x[:, 0, 3] > 0.5)).numpy()
-        share = torch.softmax(xh[:, 4:7], 1)[:, 1] if dec.copy3 else rssm.snap_mask(torch.sigmoid(xh[:, 4:5]),
-                                                                                       dec.mask_snap)[:, 0]
-        px = flow.norm(dim=1).numpy() * cfg.size / 2
-        out.update({"warped_only_db": ps_(warped), "generated_only_db": ps_(gen),
-                    "warp_share_on_object": round(float(share.numpy()[obj].mean()), 3),
-                    "flow_px_mean_on_object": round(float(px[obj].mean()), 3),
-                    "flow_px_p95_on_object": round(float(np.percentile(px[obj], 95)), 3),
-                    "still_share_on_object": round(float((px[obj] == 0).mean()), 3)})
+    z1 = sample(*model.prior_stats(h1), temperature)
+    ctx, ctx_pm, dec = model.encoder.context(x[:, 0]), x[:, 0], model.decoder
+    change = view_delta_encoding(pe[:, 1], pe[:, 0])             # since the context frame, which is the last
+    feat = decoder_input(h1, z1, change, change)
+    ident = dec.grid.expand(len(starts), -1, -1, -1)
+    frame, grid = dec(feat, ctx, ctx_pm, ident)
+    xh = dec.heads(feat, warp_maps(ctx, ident), dec.state_keypoints(feat))
+    flow = torch.tanh(xh[:, 5:7]) * dec.max_step_flow
+    warped = torch.nn.functional.grid_sample(ctx_pm, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+    gen = torch.sigmoid(xh[:, :4])
+    gen = torch.cat([gen[:, :3] * gen[:, 3:4], gen[:, 3:4]], 1)
+    share = torch.sigmoid(xh[:, 4])
+    truth = x[:, 1].numpy()
+    ps_ = lambda a: float(np.mean([psnr(p, t) for p, t in zip(np.asarray(a), truth)]))
+    obj = ((x[:, 1, 3] > 0.5) | (x[:, 0, 3] > 0.5)).numpy()
+    px = flow.norm(dim=1).numpy() * cfg.size / 2
+    out = {"windows": len(starts), "split": split, "psnr_db": ps_(frame), "copy_first_db": ps_(ctx_pm),
+           "warped_only_db": ps_(warped), "generated_only_db": ps_(gen),
+           "warp_share_on_object": round(float(share.numpy()[obj].mean()), 3),
+           "flow_px_mean_on_object": round(float(px[obj].mean()), 3),
+           "flow_px_p95_on_object": round(float(np.percentile(px[obj], 95)), 3),
+           "still_share_on_object": round(float((px[obj] == 0).mean()), 3)}
     return {k: round(v, 3) if isinstance(v, float) else v for k, v in out.items()}
 
 
 @torch.no_grad()
 def protocols(run: Path, dataset: Path, samples: int = 8, temperature: float = 1.0, max_windows: int = 64,
-              model: rssm.Rssm | None = None) -> dict:
+              model: Rssm | None = None) -> dict:
     """Open-loop gain over copy-first (dB, test windows) under three protocols: ``one_sample`` (one
     sampled rollout per window: the run-time protocol, what the bar is claimed on), ``mean_of_samples``
     (the mean frame of ``samples`` rollouts: a hedge no run-time stepper draws) and ``best_of_samples``
     (each window's best rollout by its 10-step PSNR, chosen with the truth: SVG/SAVP's oracle)."""
-    model = (model if model is not None else rssm.load_model(run)).eval()
-    data = rssm.load_sequences(dataset, model.cfg.size)
+    model = (model if model is not None else load_model(run)).eval()
+    data = load_sequences(dataset, model.cfg.size)
     starts = data.starts("test")
     if len(starts) > max_windows:
         starts = starts[np.linspace(0, len(starts) - 1, max_windows).round().astype(int)]
-    x, views = rssm._batch(data, starts, torch.device("cpu"))
+    x, views = window_batch(data, starts, torch.device("cpu"))
     first = torch.from_numpy(data.rgba[starts]).permute(0, 3, 1, 2).float() / 255.0
     truth = x[:, 1:].numpy()
     runs = []
     for i in range(samples):
         torch.manual_seed(i)
-        runs.append(rssm.premultiply(rssm.rollout(rssm.Stepper(model, temperature), first, views)).numpy())
+        runs.append(premultiply(rollout(Stepper(model, temperature), first, views)).numpy())
     runs = np.stack(runs)                                                   # (N, W, T, 4, S, S)
 
     def window_psnr(pred: np.ndarray) -> np.ndarray:                        # (W, T, ...) -> (W,) mean over steps
-        return np.array([[rssm.psnr(pred[w, t], truth[w, t]) for t in range(truth.shape[1])]
+        return np.array([[psnr(pred[w, t], truth[w, t]) for t in range(truth.shape[1])]
                          for w in range(len(starts))]).mean(1)
 
     copy = window_psnr(np.broadcast_to(x[:, :1].numpy(), truth.shape)).mean()
@@ -285,12 +283,12 @@ def spread(points: np.ndarray) -> float:
 
 @torch.no_grad()
 def motion(run: Path, dataset: Path, still: dict, temperatures: list[float] = (0.0, 1.0, 2.0), samples: int = 3,
-           model: rssm.Rssm | None = None) -> dict:
+           model: Rssm | None = None) -> dict:
     """Where the still-view motion goes. ``still`` as :func:`still_truth` (``first`` (S, S, 4) uint8,
     ``view`` (3,), ``truth`` (T, S, S, 4) uint8). For each temperature (0 = the prior mean) and
     ``samples`` seeds: the motion-energy ratio (mean |frame change| of the rollout over the
     truth's) in blocks of steps 1-10 (the trained open loop), 11-30, 31-75, 76-150 and over all,
-    and the coherence (:func:`rssm.motion_coherence`). Also, on the test windows (moving camera,
+    and the coherence (:func:`motion_coherence`). Also, on the test windows (moving camera,
     temperature 1, seed 0), the ratio per open-loop step 1..10 (step 1 from the context frame).
 
     A rollout whose motion comes from the deterministic path moves at temperature 0; one whose
@@ -299,8 +297,8 @@ def motion(run: Path, dataset: Path, still: dict, temperatures: list[float] = (0
     motion carries a part across the frame, beside the truth's; ``miss_px`` and ``stray_px``
     (:func:`path_distance` between the rollout's and the truth's centroids): whether it carries it
     where the truth's goes (travel alone counts a part sliding the wrong way as a swing)."""
-    model = (model if model is not None else rssm.load_model(run)).eval()
-    truth = rssm._pm_np(still["truth"])
+    model = (model if model is not None else load_model(run)).eval()
+    truth = premultiplied(still["truth"])
     n = len(truth)
     t_e = np.abs(np.diff(truth.astype(np.float64), axis=0)).mean(axis=(1, 2, 3))       # (n - 1,)
     background = np.median(truth, axis=0)
@@ -313,9 +311,9 @@ def motion(run: Path, dataset: Path, still: dict, temperatures: list[float] = (0
         rows = []
         for s in range(samples if temp > 0 else 1):
             torch.manual_seed(s + 1)
-            long = rssm._pm_np(rssm.rollout(rssm.Stepper(model, temp), f0, views)[0].permute(0, 2, 3, 1).numpy())
+            long = premultiplied(rollout(Stepper(model, temp), f0, views)[0].permute(0, 2, 3, 1).numpy())
             p_e = np.abs(np.diff(long.astype(np.float64), axis=0)).mean(axis=(1, 2, 3))
-            coh = rssm.motion_coherence(long)
+            coh = motion_coherence(long)
             path = centroids(long, background)
             rows.append({"ratio": [round(float(p_e[a:b].mean() / t_e[a:b].mean()), 3) for a, b in blocks]
                          + [round(float(p_e.mean() / t_e.mean()), 3)],
@@ -324,14 +322,14 @@ def motion(run: Path, dataset: Path, still: dict, temperatures: list[float] = (0
                          "miss_px": round(path_distance(truth_path, path), 2),
                          "stray_px": round(path_distance(path, truth_path), 2)})
         out["per_temperature"][f"{temp:g}"] = rows
-    out["truth_coherence"] = round(rssm.motion_coherence(truth), 3)
+    out["truth_coherence"] = round(motion_coherence(truth), 3)
     out["truth_travel_px"] = round(spread(truth_path), 2)
-    data = rssm.load_sequences(dataset, model.cfg.size)
+    data = load_sequences(dataset, model.cfg.size)
     starts = data.starts("test")[:64]
-    x, v = rssm._batch(data, starts, torch.device("cpu"))                              # premultiplied
+    x, v = window_batch(data, starts, torch.device("cpu"))                              # premultiplied
     torch.manual_seed(0)
     first = torch.from_numpy(data.rgba[starts]).permute(0, 3, 1, 2).float() / 255.0
-    pred = rssm.premultiply(rssm.rollout(rssm.Stepper(model, 1.0), first, v))
+    pred = premultiply(rollout(Stepper(model, 1.0), first, v))
     seq = torch.cat([x[:, :1], pred], 1).numpy()
     e = lambda a: np.abs(np.diff(a.astype(np.float64), axis=1)).mean(axis=(0, 2, 3, 4))
     out["test_windows_ratio_per_step"] = [round(float(a / b), 3) for a, b in zip(e(seq), e(x.numpy()))]
@@ -362,21 +360,25 @@ def subset(dataset: Path, out: Path, seconds: float) -> dict:
     return {"seconds": seconds, "frames": len(keep), "train_windows": count("train"), "test_windows": count("test")}
 
 
-def overrides(pairs: list[str], resume_from: Path | None = None) -> tuple[rssm.RssmConfig, rssm.TrainConfig]:
-    """Model and training settings from ``name=value`` pairs (fields of RssmConfig / TrainConfig),
-    over the defaults or the settings of the run ``resume_from`` (as ``dbb-train rssm --resume``)."""
+def overrides(pairs: list[str], resume_from: Path | None = None,
+              preset: str | None = None) -> tuple[RssmConfig, TrainConfig]:
+    """Model and training settings from a preset and ``name=value`` pairs (``dbb-train rssm --set``
+    names), over the defaults or the settings of the run ``resume_from`` (as ``dbb-train rssm --resume``)."""
     try:
-        return rssm.configs_from_settings(pairs, *(rssm.resume_configs(resume_from) if resume_from else ()))
-    except rssm.DbbError as e:
+        cfg, tcfg = resume_configs(resume_from) if resume_from else (RssmConfig(), TrainConfig())
+        if preset:
+            cfg, tcfg = apply_preset(preset, cfg, tcfg)
+        return configs_from_settings(pairs, cfg, tcfg)
+    except DbbError as e:
         raise SystemExit(str(e)) from None
 
 
 def quality(dataset: Path, run: Path, capture: Path | None, minutes: float, steps: int | None, batch: int,
             lr: float, temperature: float | None, train: bool, settings: list[str] = (),
-            start_frame: int | None = None, resume: bool = False) -> dict:
+            start_frame: int | None = None, resume: bool = False, preset: str | None = None) -> dict:
     """Train on a preprocess dataset (unless ``train`` is off), then evaluate with the still-view truth.
 
-    ``temperature`` None: the run's own, fitted to the footage (``rssm.calibrate_temperature``;
+    ``temperature`` None: the run's own, fitted to the footage (``dbb_capture.dynamic.evaluate.calibrate_temperature``;
     with ``train`` off it is fitted again and the run's report rewritten)."""
     still = None
     if capture is not None:
@@ -388,50 +390,40 @@ def quality(dataset: Path, run: Path, capture: Path | None, minutes: float, step
                  "load_average_1min_before": round(os.getloadavg()[0], 2)}
     if train:
         t = time.perf_counter()
-        cfg, tcfg = overrides(list(settings), run if resume else None)
+        cfg, tcfg = overrides(list(settings), run if resume else None, preset)
         tcfg = replace(tcfg, minutes=minutes, steps=steps, batch=batch, lr=lr)
-        meta = rssm.train_run(dataset, run, cfg, tcfg, overwrite=not resume, resume=resume, temperature=temperature)
-        out["settings"] = list(settings)
-        out.update({"train_steps": meta["training"]["steps"],
-                    "train_minutes": round(meta["training"]["seconds"] / 60, 2),
+        record = train_run(dataset, run, cfg, tcfg, overwrite=not resume, resume=resume, temperature=temperature)
+        out["settings"] = ([f"preset={preset}"] if preset else []) + list(settings)
+        out.update({"train_steps": record.training.steps,
+                    "train_minutes": round(record.training.seconds / 60, 2),
                     "wall_minutes_train_and_eval": round((time.perf_counter() - t) / 60, 2),
-                    "train_sequences": meta["training"]["train_sequences"],
-                    "test_sequences": meta["training"]["test_sequences"],
-                    "run_eval_motion_dataset_truth": meta["eval"]["motion"]})
+                    "train_sequences": record.training.train_sequences,
+                    "test_sequences": record.training.test_sequences,
+                    "run_eval_motion_dataset_truth": record.eval["motion"]})
     else:
         if temperature is None:
-            rssm.eval_run(run, dataset, calibrate=True)
-        meta = json.loads((run / "run.json").read_text())
+            eval_run(run, dataset, calibrate=True)
+        record = RunRecord.read(run)
         out["eval_settings"] = list(settings)       # tried on the trained weights (with_settings)
-        out.update({"train_steps": meta["training"]["steps"],
-                    "train_minutes": round(meta["training"]["seconds"] / 60, 2)})
+        out.update({"train_steps": record.training.steps,
+                    "train_minutes": round(record.training.seconds / 60, 2)})
     out["load_average_1min_after"] = round(os.getloadavg()[0], 2)
     if temperature is None:
-        temperature = float(meta["stepper"]["temperature"])
-        out["temperature_calibration"] = meta["stepper"].get("temperature_calibration")
+        temperature = record.stepper.temperature
+        out["temperature_calibration"] = record.stepper.temperature_calibration
     if still is None and start_frame is not None:
         # Fixed-camera footage is its own still-view truth, from any start frame.
-        data = rssm.load_sequences(dataset, rssm.load_model(run).cfg.size)
+        data = load_sequences(dataset, load_model(run).cfg.size)
         k = start_frame
         still = {"first": data.rgba[k], "view": data.views[k], "truth": data.rgba[k + 1:k + 151], "frame": k}
     if still is not None:
         name = f"report-still-t{temperature:g}" + ("" if start_frame is None else f"-from{start_frame}")
         model = None
         if not train and settings:
-            model = with_settings(rssm.load_model(run), list(settings))
+            model = with_settings(load_model(run), list(settings))
             name += "-" + "-".join(s.replace("=", "") for s in settings)
         out["still_view_eval"] = evaluate(run, dataset, still, temperature, name, model=model)
         out["gain_vs_copy_first_train_test"] = train_test_gap(run, dataset, temperature, model=model)
-        meta = json.loads((run / "run.json").read_text())
-        if meta.get("selection"):
-            # model.pt is the model selected on the held-out tail of the training split; the
-            # last one (the checkpoint) is scored too, to show what the selection did.
-            sel = dict(meta["selection"])
-            out["selection"] = {k: v for k, v in sel.items() if k != "validations"}
-            out["selection"]["validations"] = sel.get("validations", [])
-            last = last_model(run)
-            out["last_model_eval"] = evaluate(run, dataset, still, temperature, name + "-last", model=last)
-            out["last_model_gain_train_test"] = train_test_gap(run, dataset, temperature, model=last)
         if capture is None:
             k = still["frame"]
             out["still_view_eval"]["motion"]["truth_source"] = f"the footage itself, frames {k + 1}-{k + 150}"
@@ -447,7 +439,8 @@ def main() -> None:
     s.add_argument("--steps", type=int, default=300, help="steps per timing")
     s.add_argument("--repeat", type=int, default=1, help="timings per size (the median is reported)")
     s.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
-                   help="a RssmConfig setting other than its default (repeatable)")
+                   help="a model setting other than its default (dbb-train rssm --set; repeatable)")
+    s.add_argument("--preset", default=None, help="a preset (dbb-train rssm --preset), applied before --set")
     q = sub.add_parser("quality")
     q.add_argument("dataset", type=Path, help="a dbb-capture preprocess output (crops.json)")
     q.add_argument("--run", type=Path, required=True, help="run folder to write (or read with --no-train)")
@@ -455,15 +448,16 @@ def main() -> None:
                    help="the synthetic capture the dataset came from: its ground truth gives the still-view motion")
     q.add_argument("--minutes", type=float, default=15.0)
     q.add_argument("--steps", type=int, default=None)
-    q.add_argument("--batch", type=int, default=rssm.TrainConfig.batch)
+    q.add_argument("--batch", type=int, default=TrainConfig.batch)
     q.add_argument("--threads", type=int, default=1)
-    q.add_argument("--lr", type=float, default=rssm.TrainConfig.lr)
+    q.add_argument("--lr", type=float, default=TrainConfig.lr)
     q.add_argument("--temperature", type=float, default=None,
                    help="run-time sampling temperature (default: fitted to the footage, as dbb-train rssm does)")
     q.add_argument("--no-train", action="store_true", help="only evaluate an existing run")
     q.add_argument("--resume", action="store_true", help="train an existing run further (to --minutes in all)")
     q.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
-                   help="a RssmConfig or TrainConfig setting other than its default (repeatable)")
+                   help="a setting other than its default (dbb-train rssm --set; repeatable)")
+    q.add_argument("--preset", default=None, help="a preset (dbb-train rssm --preset), applied before --set")
     q.add_argument("--start-frame", type=int, default=None,
                    help="fixed-camera footage: start the still-view rollout at this frame (default: the report's)")
     f = sub.add_parser("first-step", help="what the run-time first step loses: its candidates, mask and flow")
@@ -472,7 +466,7 @@ def main() -> None:
     f.add_argument("--split", default="test", choices=["train", "test"])
     f.add_argument("--temperature", type=float, default=1.0)
     f.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
-                   help="a setting tried on the trained weights, e.g. flow_snap=0.5 (repeatable)")
+                   help="a setting tried on the trained weights, e.g. warp_leak=0.05 (repeatable)")
     r = sub.add_parser("protocols", help="gain over copy-first: one sample (run time), mean of samples, best of samples")
     r.add_argument("run", type=Path)
     r.add_argument("dataset", type=Path)
@@ -501,11 +495,11 @@ def main() -> None:
     torch.set_num_threads(getattr(a, "threads", 1))
     if a.cmd == "protocols":
         out = protocols(a.run, a.dataset, a.samples, a.temperature,
-                        model=with_settings(rssm.load_model(a.run), a.set))
+                        model=with_settings(load_model(a.run), a.set))
     elif a.cmd == "subset":
         out = subset(a.dataset, a.output, a.seconds)
     elif a.cmd == "first-step":
-        out = first_step(a.run, a.dataset, a.split, a.temperature, model=with_settings(rssm.load_model(a.run), a.set))
+        out = first_step(a.run, a.dataset, a.split, a.temperature, model=with_settings(load_model(a.run), a.set))
     elif a.cmd == "motion":
         cache = a.run.parent / f".{a.run.name}.still.pt"
         if a.capture is not None and not cache.is_file():
@@ -513,18 +507,19 @@ def main() -> None:
         if cache.is_file():
             still = torch.load(cache, weights_only=False)
         else:                                   # a fixed camera: the footage is its own truth
-            data = rssm.load_sequences(a.dataset, rssm.load_model(a.run).cfg.size)
+            data = load_sequences(a.dataset, load_model(a.run).cfg.size)
             k = a.start_frame
             still = {"first": data.rgba[k], "view": data.views[k], "truth": data.rgba[k + 1:k + 151], "frame": k}
         out = motion(a.run, a.dataset, still, a.temperature or [0.0, 1.0, 2.0], a.samples,
-                     model=with_settings(rssm.load_model(a.run), a.set))
+                     model=with_settings(load_model(a.run), a.set))
     elif a.cmd == "blurred-copy":
         out = [blurred_copy(a.dataset, s) for s in (a.sigma or [0.5])]
     elif a.cmd == "speed":
-        out = [{**speed(int(s), a.steps, a.set, a.repeat), "settings": a.set} for s in a.sizes.split(",")]
+        out = [{**speed(int(s), a.steps, a.set, a.repeat, a.preset), "settings": a.set, "preset": a.preset}
+               for s in a.sizes.split(",")]
     else:
         out = quality(a.dataset, a.run, a.capture, a.minutes, a.steps, a.batch, a.lr, a.temperature, not a.no_train,
-                      a.set, a.start_frame, a.resume)
+                      a.set, a.start_frame, a.resume, a.preset)
     print(json.dumps(out, indent=2))
 
 

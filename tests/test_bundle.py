@@ -25,7 +25,7 @@ def _cli(*args):
 @pytest.fixture(scope="module")
 def static_run(tmp_path_factory):
     """A tiny PlenOctree run (a few steps on 24 px views of the synthetic toy)."""
-    from test_fields import synthetic_object_frames
+    from static.synthetic import synthetic_object_frames
 
     from dbb_capture.datasets.transforms import write_transforms
     from dbb_capture.static.field import FieldConfig
@@ -51,12 +51,14 @@ def static_bundle(static_run):
 
 @pytest.fixture(scope="module")
 def dynamic_run(tmp_path_factory):
-    from dbb_capture.dynamic import rssm as rssm
+    from dbb_capture.dynamic.config import RssmConfig, TrainConfig
+    from dbb_capture.dynamic.run import train_run
+    from dbb_capture.synth.crops import synthetic_crops
 
     folder = tmp_path_factory.mktemp("bundle_dynamic")
-    rssm.synthetic_crops(folder / "ds", seconds=3.0, fps=10, size=32, still_steps=1, samples=1)
-    small = rssm.RssmConfig(size=32, deter=16, stoch=16, hidden=64, embed=64, enc_depth=8, dec_depth=8)
-    rssm.train_run(folder / "ds", folder / "run", small, rssm.TrainConfig(steps=3, batch=2), quiet=True)
+    synthetic_crops(folder / "ds", seconds=3.0, fps=10, size=32, still_steps=1, samples=1)
+    small = RssmConfig(size=32, deter=16, stoch=16, hidden=64, embed=64, enc_depth=8, dec_depth=8)
+    train_run(folder / "ds", folder / "run", small, TrainConfig(steps=3, batch=2), quiet=True)
     return folder
 
 
@@ -136,7 +138,8 @@ def _cameras(frames, path, per_frame=False, drop_intrinsics=False):
 
 
 def test_render_equals_the_runs_tree_and_reads_both_intrinsic_layouts(static_run, static_bundle, tmp_path):
-    from dbb_capture.octree.render import PlenOctree, TreeRenderer
+    from dbb_capture.octree.render import TreeRenderer
+    from dbb_capture.octree.tree import PlenOctree
 
     folder, frames = static_run
     test = frames[:3]

@@ -261,9 +261,7 @@ def read_cameras(path: Path, T: np.ndarray | None = None) -> list[View]:
     ``T`` (bundle_from_board): when given, the poses are in bundle space and are taken to the
     board frame. Missing intrinsics, poses or names: one clear :class:`DbbError`.
     """
-    from ..datasets.records import (
-        _intrinsics,  # the dataset reader's nerfstudio intrinsics rules
-    )
+    from ..datasets.transforms import _intrinsics
 
     path = Path(path)
     meta = read_json(path, "cameras file")
@@ -301,7 +299,8 @@ class StaticRenderer:
     """Straight RGBA renders of a static bundle's PlenOctree."""
 
     def __init__(self, tree_path: Path):
-        from ..octree.render import PlenOctree, TreeRenderer
+        from ..octree.render import TreeRenderer
+        from ..octree.tree import PlenOctree
 
         self.renderer = TreeRenderer(PlenOctree.load(tree_path), pick_device())
 
@@ -364,7 +363,7 @@ class DynamicRenderer:
     def frames(self, views: np.ndarray, first: np.ndarray | None = None,
                first_view: np.ndarray | None = None, seed: int = SEED) -> np.ndarray:
         """Model frames (T, S, S, 4) uint8 for viewpoints (T, 3), one step each after the context."""
-        from ..dynamic.rssm import rollout
+        from ..dynamic.stepper import rollout
 
         torch.manual_seed(seed)
         ctx = _rgba_tensor(self.first if first is None else first, self.size)
@@ -548,7 +547,7 @@ def _dataset_cameras(dataset: Path) -> tuple[list[float], np.ndarray]:
 
     Up is the board normal on the cameras' side: the dataset's recorded "up", else from its poses.
     """
-    from ..datasets.records import find_dataset_file
+    from ..datasets.transforms import find_dataset_file
 
     src = find_dataset_file(dataset)
     meta = read_json(src, "dataset")
@@ -588,14 +587,15 @@ def _created(run: Path, meta: dict) -> dict:
             "training_steps": meta.get("training", {}).get("steps"), "training_seconds": meta.get("training", {}).get("seconds")}
 
 
-_RUN_KEYS = {"static": (("tree", "file"), ("density_grid", "file"), ("object", "center"), ("object", "radius")),
-             "dynamic": (("stepper", "file"), ("stepper", "frame_size"), ("model", "file"))}
+_RUN_KEYS = {"dynamic": (("stepper", "file"), ("stepper", "frame_size"), ("model", "file"))}
 
 
 def _run_kind(run: Path) -> tuple[str, dict]:
     """"static" or "dynamic" and the run.json of a finished dbb-train run (one clear error if not)."""
     from ..static.run import RUN_FORMAT as TREE_FORMAT
-    from ..dynamic.rssm import RUN_FORMAT as RSSM_FORMAT
+    from ..static.run import load_run
+    from ..dynamic.record import RUN_FORMAT as RSSM_FORMAT
+    from ..dynamic.record import RunRecord
 
     if not Path(run).is_dir():
         raise DbbError(f"run folder not found: {run}")
@@ -605,7 +605,11 @@ def _run_kind(run: Path) -> tuple[str, dict]:
         raise DbbError(f"{run} is not a finished dbb-train run (run.json format "
                        f"{meta.get('format') if isinstance(meta, dict) else None!r})")
     kind = kinds[meta["format"]]
-    for a, b in _RUN_KEYS[kind]:
+    if kind == "static":
+        load_run(run)      # the typed record: refuses other versions and incomplete records
+    else:
+        RunRecord.read(run)
+    for a, b in _RUN_KEYS.get(kind, ()):
         if not isinstance(meta.get(a), dict) or b not in meta[a]:
             raise DbbError(f"{run}/run.json lacks {a}.{b}: is it a finished training run?")
     return kind, meta
@@ -618,25 +622,27 @@ def _need(run: Path, *names: str) -> None:
 
 
 def build_static(run: Path, meta: dict, tmp: Path, dataset: Path | None, prog) -> Manifest:
-    _need(run, meta["tree"]["file"], meta["density_grid"]["file"])
-    o = meta["object"]
-    center, radius = np.asarray(o["center"], float), float(o["radius"])
+    from ..static.run import load_run
+
+    r = load_run(run)
+    rec = r.record
+    _need(run, rec.tree.file, r.density_grid_path.name)
+    center, radius = np.asarray(rec.volume.center, float), float(rec.volume.radius)
     up, cams = _dataset_cameras(_run_dataset(meta, run, dataset))
     T = bundle_from_board(center, up)
     (tmp / "model").mkdir()
-    shutil.copyfile(Path(run) / meta["tree"]["file"], tmp / "model" / "plenoctree.npz")
+    shutil.copyfile(r.tree_path, tmp / "model" / "plenoctree.npz")
     task = prog.add_task("proxy mesh", total=1, info="marching cubes")
-    proxy = static_proxy(Path(run) / meta["density_grid"]["file"], T)
+    proxy = static_proxy(r.density_grid_path, T)
     write_glb(tmp / "proxy.glb", proxy)
     prog.advance(task)
     previews = write_static_previews(tmp / "previews", tmp / "model" / "plenoctree.npz", T, radius,
                                      round(mean_azimuth(cams, center, np.asarray(up)), 1), prog)
-    tree = meta["tree"]
     return Manifest(
         kind="static",
         model={"type": "plenoctree", "file": "model/plenoctree.npz", "format": "svox N3Tree npz",
-               "data_format": tree.get("data_format"), "sh_degree": tree.get("sh_degree"),
-               "depth_limit": tree.get("depth_limit"), "density_units": "per metre (board frame)",
+               "data_format": rec.tree.data_format, "sh_degree": rec.tree.sh_degree,
+               "depth_limit": rec.tree.depth_limit, "density_units": "per metre (board frame)",
                "frame": "board (tree: offset + board_point * invradius3 in [0, 1]^3)"},
         inputs={"camera": "a ray per pixel in the board frame (bundle-space rays: apply the inverse of "
                           "bundle_from_board first)", "output": "straight RGBA"},
@@ -644,11 +650,12 @@ def build_static(run: Path, meta: dict, tmp: Path, dataset: Path | None, prog) -
         object={"center": center.tolist(), "radius": radius}, up=list(up),
         canvas={"size_m": 2 * radius, "note": "a camera-facing square of this side, centred on the object, "
                                                  "holds the object sphere"},
-        colour_activation=tree.get("colour_activation"), previews=previews, created=_created(run, meta))
+        colour_activation=rec.tree.colour_activation, previews=previews, created=_created(run, meta))
 
 
 def build_dynamic(run: Path, meta: dict, tmp: Path, dataset: Path | None, prog) -> Manifest:
-    from ..datasets.records import find_dataset_file, load_dataset, load_rgba
+    from ..datasets.transforms import find_dataset_file, load_dataset
+    from ..datasets.images import load_rgba
 
     _need(run, meta["stepper"]["file"], meta["model"]["file"])
     ds_file = find_dataset_file(_run_dataset(meta, run, dataset))

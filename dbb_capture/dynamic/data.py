@@ -1,0 +1,173 @@
+"""The RSSM's data: a preprocess dataset's crops in memory, its sequence windows, training batches
+and their augmentation."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.nn import functional as F
+
+from ..core.errors import DbbError
+from ..core.images import resize_rgba
+from ..core.outputs import read_json
+from ..core.progress import progress
+from ..crops.sequences import sequence_windows
+from ..datasets.images import load_rgba
+from ..datasets.transforms import find_dataset_file, load_dataset
+from .rgba import premultiply
+
+
+@dataclass
+class SequenceData:
+    """Frames of a crops.json dataset in memory, and the sequence windows over them."""
+
+    source: Path
+    rgba: np.ndarray               # (N, S, S, 4) uint8 straight RGBA
+    views: np.ndarray              # (N, 3) float32 [azimuth_deg, elevation_deg, distance_m]
+    splits: np.ndarray             # (N,) str
+    times: np.ndarray              # (N,) seconds
+    windows: list[tuple[int, str]]  # (start, split)
+    length: int                    # frames per window (1 context + predicted)
+    meta: dict = field(default_factory=dict)
+
+    def starts(self, split: str) -> np.ndarray:
+        return np.array([s for s, sp in self.windows if sp == split], dtype=np.int64)
+
+    def fixed_camera(self) -> bool:
+        """Whether every frame has the same viewpoint (preprocess's fixed-camera mode)."""
+        return bool(np.ptp(self.views[:, :2], 0).max() < 1e-3)
+
+    def fps(self) -> float | None:
+        """Frames per second (the median frame interval's), None for a single frame."""
+        if len(self.times) < 2:
+            return None
+        return round(1.0 / float(np.median(np.diff(self.times))), 4)
+
+
+def load_sequences(dataset: Path, size: int = 64) -> SequenceData:
+    """Read ``crops.json`` (RGBA crops, per-frame ``viewpoint``, ``split``, ``time``, ``sequences``).
+
+    Windows come from the file's ``sequences``; a file without them gets windows from the frame
+    times (:func:`dbb_capture.crops.sequences.sequence_windows`, 11 frames).
+    """
+    src = find_dataset_file(Path(dataset))
+    if src.name != "crops.json":
+        raise DbbError(f"{dataset}: the RSSM trains on a preprocess dataset (crops.json), found {src.name}")
+    meta = read_json(src, "dataset")
+    ds = load_dataset(src)
+    raw = meta["frames"]
+    views, times = [], []
+    for i, f in enumerate(raw):
+        vp = f.get("viewpoint")
+        try:
+            views.append([float(vp["azimuth_deg"]), float(vp["elevation_deg"]), float(vp["distance_m"])])
+        except (TypeError, KeyError, ValueError):
+            raise DbbError(f"{src} frame {i}: needs viewpoint {{azimuth_deg, elevation_deg, distance_m}}") from None
+        if f.get("time") is None:
+            raise DbbError(f"{src} frame {i}: needs time (seconds)")
+        times.append(float(f["time"]))
+    splits = np.array([fr.split for fr in ds.frames])
+    length = int(meta.get("sequence_length", 11))
+    if "sequences" in meta:
+        windows = [(int(s["start"]), str(s["split"])) for s in meta["sequences"]]
+    else:
+        windows = sequence_windows(np.array(times), splits, length)
+    if any(s < 0 or s + length > len(raw) for s, _ in windows):
+        raise DbbError(f"{src}: a sequence window runs past the last frame")
+    if not any(sp == "train" for _, sp in windows):
+        raise DbbError(f"{src}: no training sequences of {length} consecutive frames")
+    imgs = np.empty((len(raw), size, size, 4), np.uint8)
+    with progress(transient=True) as prog:
+        task = prog.add_task("load crops", total=len(raw), info="")
+        for i, fr in enumerate(ds.frames):
+            imgs[i] = np.round(resize_rgba(load_rgba(fr), size) * 255).astype(np.uint8)
+            prog.update(task, advance=1)
+    return SequenceData(src, imgs, np.array(views, np.float32), splits, np.array(times), windows, length,
+                        {k: v for k, v in meta.items() if k != "frames"})
+
+
+def training_windows(data: SequenceData, horizon: int | None) -> tuple[np.ndarray, int]:
+    """Starts and length (1 + ``horizon``) of windows cut from runs of consecutive training frames
+    (no gap, no split change), for the latent-only steps (``TrainConfig.dynamics_horizon``); the
+    horizon shrinks to what the training frames allow, and ``None`` keeps the dataset's windows."""
+    if horizon is None or horizon + 1 == data.length:
+        return data.starts("train"), data.length
+    n_train = int((data.splits == "train").sum())
+    for length in range(min(horizon + 1, n_train), data.length - 1, -1):
+        # At least half as many windows as frames: a handful of long windows would be memorised.
+        w = sequence_windows(data.times, data.splits, length)
+        starts = np.array([s for s, sp in w if sp == "train"], dtype=np.int64)
+        if len(starts) >= max(1, n_train // 2):
+            return starts, length
+    return data.starts("train"), data.length
+
+
+def long_training_runs(data: SequenceData, steps: int, count: int) -> tuple[np.ndarray, int]:
+    """Up to ``count`` evenly spread starts of runs of 1 + ``steps`` consecutive training frames,
+    and that length; shorter runs (down to the dataset's window) when the footage has none."""
+    for length in range(min(steps + 1, len(data.times)), data.length - 1, -1):
+        starts = np.array([s for s, sp in sequence_windows(data.times, data.splits, length) if sp == "train"],
+                          dtype=np.int64)
+        if len(starts):
+            pick = np.linspace(0, len(starts) - 1, min(count, len(starts))).round().astype(int)
+            return starts[np.unique(pick)], length
+    return np.zeros(0, np.int64), 0
+
+
+def batch(data: SequenceData, starts: np.ndarray, device: torch.device,
+          length: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Premultiplied RGBA (B, L, 4, S, S) float and views (B, L, 3) of windows starting at ``starts``
+    (L = ``length``, default the dataset's window length)."""
+    idx = starts[:, None] + np.arange(length or data.length)[None]
+    x = torch.from_numpy(data.rgba[idx]).to(device).permute(0, 1, 4, 2, 3).float() / 255.0
+    return premultiply(x), torch.from_numpy(data.views[idx]).to(device)
+
+
+def first_frames(data: SequenceData, idx: np.ndarray) -> torch.Tensor:
+    """Straight RGBA (B, 4, S, S) float of frames ``idx`` (B,): what a rollout starts from."""
+    return torch.from_numpy(data.rgba[idx]).permute(0, 3, 1, 2).float() / 255.0
+
+
+def augment(x: torch.Tensor, views: torch.Tensor, how: str, rng: np.random.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """Training windows ``x`` (B, L, 4, S, S), ``views`` (B, L, 3), each changed with probability 1/2
+    as ``how`` asks (``TrainConfig.augment``): "flip" mirrors the frames left-right and negates the
+    azimuth (the mirrored toy seen from the mirrored side), "reverse" plays the window backwards.
+    "shift" moves every window by a random whole-pixel offset of up to S/16 (:func:`shift_windows`).
+
+    The toy is seen along one camera path, each viewpoint at one time: the model can learn which
+    pose goes with which view and window instead of how the toy moves (2-5 dB better on training
+    windows than on held-out ones without these; docs/decisions.md, augment); mirrored and reversed
+    windows are motions it has not seen.
+    """
+    kinds = set(how.split(","))
+    B = x.shape[0]
+    if "flip" in kinds:
+        f = torch.from_numpy(rng.random(B) < 0.5).to(x.device)
+        x = torch.where(f[:, None, None, None, None], x.flip(-1), x)
+        views = torch.where(f[:, None, None], views * views.new_tensor([-1.0, 1.0, 1.0]), views)
+    if "reverse" in kinds:
+        r = torch.from_numpy(rng.random(B) < 0.5).to(x.device)
+        x = torch.where(r[:, None, None, None, None], x.flip(1), x)
+        views = torch.where(r[:, None, None], views.flip(1), views)
+    if "shift" in kinds:
+        x = shift_windows(x, rng.integers(-(x.shape[-1] // 16), x.shape[-1] // 16 + 1, size=(B, 2)))
+    return x, views
+
+
+def shift_windows(x: torch.Tensor, offsets: np.ndarray) -> torch.Tensor:
+    """Windows ``x`` (B, L, C, S, S) each moved by whole pixels ``offsets`` (B, 2) = (dx, dy), the
+    same for every frame of a window (its motion is kept), edges repeated (DrQ's random shift).
+
+    The crops put the toy at one place in the frame; a model that only ever sees it there can key
+    its motion to pixel positions it will not meet at new viewpoints, where the crop sits a pixel
+    or two off."""
+    B, L, C, S, _ = x.shape
+    k = int(np.abs(offsets).max()) if len(offsets) else 0
+    if k == 0:
+        return x
+    pad = F.pad(x.reshape(B, L * C, S, S), (k, k, k, k), mode="replicate")
+    out = [pad[b, :, k - dy:k - dy + S, k - dx:k - dx + S] for b, (dx, dy) in enumerate(offsets.tolist())]
+    return torch.stack(out).reshape(B, L, C, S, S)

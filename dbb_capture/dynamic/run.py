@@ -1,0 +1,166 @@
+"""An RSSM run folder end to end: train on a dataset and write the folder (:func:`train_run`),
+evaluate a finished one again (:func:`eval_run`), read its model (:func:`load_model`). The folder's
+files: :mod:`dbb_capture.dynamic.record`."""
+
+from __future__ import annotations
+
+import shutil
+import time
+from dataclasses import asdict, replace
+from pathlib import Path
+
+import torch
+
+from ..core.device import pick_device
+from ..core.errors import DbbError
+from ..core.outputs import (
+    atomic_dir,
+    check_run_output,
+    resume_checkpoint,
+    run_work_dir,
+    training_minutes,
+    write_json,
+)
+from ..core.progress import progress
+from .config import RssmConfig, TrainConfig, leak_at_frame_rate
+from .data import SequenceData, load_sequences
+from .evaluate import RUN_TEMPERATURE, EvalReport, calibrate_temperature, evaluate
+from .figures import write_figures
+from .model import Rssm
+from .record import RunRecord, StepperRecord, TrainingRecord
+from .stepper import Stepper, script_stepper
+from .train import TrainState, budget_fraction, read_checkpoint, train
+
+
+def resume_configs(out: Path) -> tuple[RssmConfig, TrainConfig]:
+    """The model and training settings of the run ``out``'s last checkpoint, as the base that a
+    resumed run's own settings go over (so resuming keeps the preset and settings given at the start)."""
+    ck = read_checkpoint(resume_checkpoint(Path(out)), torch.device("cpu"))
+    return RssmConfig.from_json(ck["config"]), TrainConfig(**ck["train_config"])
+
+
+def train_run(dataset: Path, out: Path, cfg: RssmConfig, tcfg: TrainConfig, resume: bool = False,
+              overwrite: bool = False, quiet: bool = False, temperature: float | None = None) -> RunRecord:
+    """Train on ``dataset`` and write the run folder ``out`` atomically; returns its record.
+
+    ``temperature``: the stepper's sampling temperature (scales the prior's std at run time;
+    None: fitted to the footage, :func:`calibrate_temperature`).
+    """
+    out = Path(out)
+    check_run_output(out, overwrite, resume)
+    tcfg = replace(tcfg, minutes=training_minutes(tcfg.minutes, tcfg.steps, default=15.0))
+    device = pick_device()
+    work = run_work_dir(out)
+    ckpt = work / "checkpoint.pt"
+    state = None
+    if resume:
+        state = TrainState.load(resume_checkpoint(out), tcfg, device)
+        cfg = state.model.cfg
+    cfg.validate()
+    tcfg.validate()
+    data = load_sequences(dataset, cfg.size)
+    torch.manual_seed(tcfg.seed)
+    if state is None:
+        state = TrainState.new(Rssm(leak_at_frame_rate(cfg, data.fps())).to(device), tcfg)
+    work.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    with progress() as prog:
+        task = prog.add_task("train rssm", total=100, info="")
+
+        def on_step(st: TrainState, parts: dict | None) -> None:
+            if quiet:
+                return
+            info = ("non-finite step skipped" if parts is None else
+                    f"step {st.step}  rec {parts['rec']:.1f}  kl {parts['kl_dyn']:.2f}  over {parts['overshoot']:.2f}")
+            prog.update(task, completed=100 * budget_fraction(st, tcfg), info=info)
+
+        state = train(state, data, tcfg, ckpt, on_step)
+        prog.update(task, completed=100)
+    record = write_run(out, state, data, dataset, tcfg, ckpt, wall=time.perf_counter() - t0, temperature=temperature)
+    shutil.rmtree(work, ignore_errors=True)
+    return record
+
+
+def write_run(out: Path, state: TrainState, data: SequenceData, dataset: Path, tcfg: TrainConfig,
+              ckpt: Path, wall: float, temperature: float | None = None) -> RunRecord:
+    """The run folder of a trained state; ``temperature`` None: calibrated (run.json says how)."""
+    model = state.run_model()           # checkpoint.pt keeps the last weights (to continue training)
+    cal = calibrate_temperature(model, data) if temperature is None else None
+    temperature = cal.temperature if cal is not None else float(temperature)
+    with atomic_dir(out, overwrite=True) as tmp:
+        shutil.copyfile(ckpt, tmp / "checkpoint.pt")
+        torch.save({"config": asdict(model.cfg), "state_dict": model.state_dict()}, tmp / "model.pt")
+        script_stepper(model, temperature).save(str(tmp / "stepper.ts"))
+        report = run_eval(model, data, tmp / "report", state.history, temperature=temperature)
+        record = RunRecord(
+            dataset=str(Path(dataset).resolve()), dataset_file=data.source.name,
+            object=data.meta.get("object"), up=data.meta.get("up"),
+            crop={"size": data.meta.get("crop_size"), "fill": data.meta.get("crop_fill")}, config=model.cfg,
+            stepper=StepperRecord(model.cfg.size, data.fps(), temperature, None if cal is None else cal.to_json()),
+            training=TrainingRecord(
+                steps=state.step, seconds=round(state.seconds, 1), last_wall_seconds=round(wall, 1),
+                budget_minutes=tcfg.minutes, budget_steps=tcfg.steps, batch=tcfg.batch, lr=tcfg.lr,
+                weights="moving average" if state.ema is not None else "last",
+                non_finite_steps_skipped=state.bad_steps, train_sequences=len(data.starts("train")),
+                test_sequences=len(data.starts("test")), final=state.history[-1] if state.history else None),
+            eval=report.to_json())
+        record.write(tmp)
+    return record
+
+
+def run_eval(model: Rssm, data: SequenceData, folder: Path, history: list[dict],
+             temperature: float = RUN_TEMPERATURE, **kw) -> EvalReport:
+    """Evaluate ``model`` (sampling at ``temperature``) on ``data``; ``eval.json`` and figures into
+    ``folder``; ``kw`` as :func:`dbb_capture.dynamic.evaluate.evaluate`'s."""
+    report, figs = evaluate(Stepper(model.cpu().eval(), temperature), data, **kw)
+    folder.mkdir(parents=True, exist_ok=True)
+    write_json(folder / "eval.json", report.to_json())
+    write_figures(report, figs, history, folder)
+    return report
+
+
+def load_model(run: Path) -> Rssm:
+    """The trained model of a run folder (``model.pt``), in eval mode."""
+    record = RunRecord.read(run)
+    try:
+        ck = torch.load(Path(run) / record.model_file, map_location="cpu", weights_only=False)
+        model = Rssm(RssmConfig.from_json(ck["config"]))
+        model.load_state_dict(ck["state_dict"])
+    except (OSError, KeyError, RuntimeError) as e:
+        raise DbbError(f"cannot read the RSSM model of {run}: {e}") from None
+    return model.eval()
+
+
+def eval_run(run: Path, dataset: Path | None = None, temperature: float | None = None,
+             calibrate: bool = False) -> EvalReport:
+    """Evaluate a run folder again (on its own dataset unless ``dataset`` is given).
+
+    Replaces ``report/`` and the ``eval`` entry of ``run.json``; a new ``temperature`` (or
+    ``calibrate``: fit it again, :func:`calibrate_temperature`) also replaces ``stepper.ts`` and the
+    stepper's temperature in ``run.json``. Each file is written aside and renamed into place,
+    run.json last.
+    """
+    run = Path(run)
+    record = RunRecord.read(run)
+    model = load_model(run)
+    data = load_sequences(Path(dataset) if dataset is not None else Path(record.dataset), model.cfg.size)
+    ck = run / record.checkpoint
+    history = read_checkpoint(ck, torch.device("cpu"))["history"] if ck.is_file() else []
+    stepper = record.stepper
+    if calibrate:
+        cal = calibrate_temperature(model, data)
+        temperature, stepper.temperature_calibration = cal.temperature, cal.to_json()
+    elif temperature is None:
+        temperature = stepper.temperature
+    elif temperature != stepper.temperature:
+        stepper.temperature_calibration = None          # set by hand
+    with atomic_dir(run / "report", overwrite=True) as tmp:
+        report = run_eval(model, data, tmp, history, temperature=temperature)
+    if temperature != stepper.temperature:
+        ts = run / f".{stepper.file}.partial"
+        script_stepper(model, temperature).save(str(ts))
+        ts.replace(run / stepper.file)
+        stepper.temperature = temperature
+    record.eval = report.to_json()
+    record.write(run)
+    return report

@@ -1,0 +1,116 @@
+"""The run-time stepper: the trained model one frame at a time, TorchScript-exportable (``stepper.ts``).
+
+Frames in and out are straight RGBA (B, 4, S, S) in [0, 1]; views (B, 3) [azimuth_deg,
+elevation_deg, distance_m] (crops.json ``viewpoint``). The stochastic state is sampled, not
+replaced by its mean (the mean settles within ~30 steps).
+"""
+
+from __future__ import annotations
+
+from typing import List
+
+import torch
+
+from .model import LatentStep, Rssm, decoder_input, sample
+from .networks import fast_decoder
+from .rgba import premultiply, straight
+
+
+class Stepper(LatentStep):
+    """Run-time API, TorchScript-exportable; the model's own latent step (:class:`LatentStep`) and
+    decoder (its upsampling as :class:`dbb_capture.dynamic.networks.PhaseUp`: the same function, faster).
+
+    ``start(rgba, view) -> (h, z)``: the state after seeing the first frame. The stepper keeps that
+    frame (and its encoder maps) as the context of the following steps, so one stepper runs one
+    rollout (batch) at a time.
+    ``step(h, z, view) -> (h, z, rgba)``: advance one frame (the transition ignores ``view``),
+    sample the stochastic state (``temperature`` scales its std; 0 gives the mean) and decode
+    the next frame as seen from ``view``.
+    ``observe(h, z, rgba, view) -> (h, z)`` and ``decode(h, z, view) -> rgba``: filtering instead of
+    forecasting, and the frame of any state.
+    """
+
+    def __init__(self, model: Rssm, temperature: float = 1.0):
+        super().__init__()
+        self.encoder = model.encoder
+        self.decoder = fast_decoder(model.decoder)
+        self.z_in = model.z_in
+        self.gru = model.gru
+        self.prior = model.prior
+        self.post = model.post
+        self.min_std = float(model.cfg.min_std)
+        self.deter = int(model.cfg.deter)
+        self.temperature = float(temperature)
+        self.ctx = []                       # the context frame's encoder maps, set by start()
+        self.ctx_pm = torch.zeros(0)        # its premultiplied pixels
+        self.warp = torch.zeros(0)          # the last frame's warp, set by start(), step()
+        self.ctx_view = torch.zeros(0)      # the context's and the last frame's viewpoints (N, 3)
+        self.prev_view = torch.zeros(0)
+        self.register_buffer("octaves", model.octaves.clone(), persistent=False)
+
+    @torch.jit.export
+    def start(self, rgba: torch.Tensor, view: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        pm = premultiply(rgba)
+        emb = self.encoder(pm)
+        self.ctx = self.encoder.context(pm)
+        self.ctx_pm = pm
+        self.ctx_view = view
+        self.prev_view = view
+        self.warp = self.decoder.grid.expand(rgba.shape[0], -1, -1, -1).to(rgba.dtype)
+        h = torch.zeros(rgba.shape[0], self.deter, dtype=rgba.dtype, device=rgba.device)
+        mean, std = self.post_stats(h, emb, self.encode_view(view))
+        return h, sample(mean, std, self.temperature)
+
+    def _decode(self, h: torch.Tensor, z: torch.Tensor, view: torch.Tensor) -> torch.Tensor:
+        """Straight RGBA (B, 4, S, S) of state (h, z) seen from ``view``; moves the accumulated warp on.
+        The view's changes are encoded from the angles' differences (one encoding for both)."""
+        n = view.shape[0]
+        d = self.encode_view(torch.cat([view - self.ctx_view, view - self.prev_view]))
+        pm, self.warp = self.decoder(decoder_input(h, z, d[:n], d[n:]), self.ctx, self.ctx_pm, self.warp)
+        self.prev_view = view
+        return straight(pm)
+
+    @torch.jit.export
+    def step(self, h: torch.Tensor, z: torch.Tensor, view: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        h = self.transition(h, z)
+        mean, std = self.prior_stats(h)
+        z = sample(mean, std, self.temperature)
+        return h, z, self._decode(h, z, view)
+
+    @torch.jit.export
+    def observe(self, h: torch.Tensor, z: torch.Tensor, rgba: torch.Tensor, view: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Filtering instead of forecasting: the next state after seeing frame ``rgba`` (straight
+        RGBA (B, 4, S, S)) from ``view``, z the posterior's mean. Nothing is decoded."""
+        h = self.transition(h, z)
+        mean, _std = self.post_stats(h, self.encoder(premultiply(rgba)), self.encode_view(view))
+        return h, mean
+
+    @torch.jit.export
+    def decode(self, h: torch.Tensor, z: torch.Tensor, view: torch.Tensor) -> torch.Tensor:
+        """The frame of a state (e.g. from :meth:`observe`) seen from ``view`` (see :meth:`step`)."""
+        return self._decode(h, z, view)
+
+    def forward(self, h: torch.Tensor, z: torch.Tensor, view: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        return self.step(h, z, view)
+
+
+def script_stepper(model: Rssm, temperature: float = 1.0) -> torch.jit.ScriptModule:
+    """The TorchScript stepper of ``model`` (on CPU, eval mode)."""
+    st = Stepper(model, temperature).cpu().eval()
+    st.ctx = torch.jit.Attribute([], List[torch.Tensor])     # TorchScript cannot type an empty list
+    return torch.jit.script(st)
+
+
+@torch.no_grad()
+def rollout(stepper, first: torch.Tensor, views: torch.Tensor) -> torch.Tensor:
+    """Open-loop frames from ``first`` (B, 4, S, S) straight RGBA; ``views`` (B, T+1, 3) incl. frame 0.
+
+    ``stepper``: a :class:`Stepper` (eager or TorchScript). Returns straight RGBA (B, T, 4, S, S)
+    for frames 1..T.
+    """
+    h, z = stepper.start(first, views[:, 0])
+    out = []
+    for t in range(1, views.shape[1]):
+        h, z, x = stepper.step(h, z, views[:, t])
+        out.append(x)
+    return torch.stack(out, 1)

@@ -1,0 +1,99 @@
+"""Evaluation: baselines, motion figures, and the run-time temperature fitted to the footage."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from dbb_capture.core.metrics import psnr
+from dbb_capture.dynamic import evaluate as ev
+from dbb_capture.dynamic.data import SequenceData, long_training_runs
+from dbb_capture.dynamic.evaluate import (CALIBRATION_TEMPERATURES, RUN_TEMPERATURE, calibrate_temperature, evaluate,
+                                          motion_coherence, motion_energy, nearest_training_frames,
+                                          still_view_energy, still_view_target, with_temperature)
+from dbb_capture.dynamic.model import Rssm
+from dbb_capture.dynamic.rgba import premultiplied
+from dbb_capture.dynamic.stepper import Stepper, script_stepper
+
+from .conftest import SMALL, moving_model
+
+
+def test_on_a_static_sequence_copy_first_is_perfect(data):
+    still = SequenceData(data.source, np.repeat(data.rgba[:1], 30, 0), np.repeat(data.views[:1], 30, 0),
+                         np.array(["train"] * 15 + ["test"] * 15), np.arange(30) / 10.0,
+                         [(0, "train"), (15, "test")], 11)
+    rep, figs = evaluate(Stepper(Rssm(SMALL).eval()), still, rollout_steps=8)
+    assert rep.split == "test" and rep.windows == 1
+    assert rep.psnr["copy_first"] == [120.0] * 10 and rep.psnr["near"] == [120.0] * 10
+    assert rep.ssim["copy_first"] == pytest.approx([1.0] * 10)
+    assert rep.motion["truth_energy"] == 0 and rep.motion["ratio"] is None
+    assert rep.mean("psnr", "model") < 40          # an untrained model is not perfect
+    assert set(rep.psnr) == {"model", "model_mean", "near", "copy_first"} and figs["long"].shape[:2] == (1, 8)
+    assert set(rep.to_json()["psnr_gain_db"]) == {"vs_copy_first", "vs_near"}
+
+
+def test_metrics_known_values(crops, data):
+    a, b = np.full((8, 8, 4), 0.5), np.full((8, 8, 4), 0.6)
+    assert psnr(a, b) == pytest.approx(20.0)
+    assert motion_energy(np.stack([a, b, a])) == pytest.approx(0.1)
+    # Coherence: a steady change scores 1, back-and-forth jitter -1, a still sequence nothing.
+    ramp = np.stack([np.full((8, 8, 4), 0.1 * t) for t in range(5)])
+    assert motion_coherence(ramp) == pytest.approx(1.0)
+    assert motion_coherence(np.stack([a, b, a, b])) == pytest.approx(-1.0)
+    assert motion_coherence(np.stack([a, a, a])) is None
+    # The nearest training frame of a training frame's own viewpoint is that frame (or one seen the same way).
+    idx = nearest_training_frames(data, data.views[[2, 7]])
+    assert np.allclose(data.views[idx][:, :2], data.views[[2, 7]][:, :2], atol=1.0)
+    # The still-viewpoint truth moves: the toy's arms and head are never still.
+    assert motion_energy(crops.still_truth.astype(float) / 255) > 1e-3
+
+
+def test_fixed_camera_footage_is_its_own_still_view_truth(data):
+    fixed = replace(data, views=np.repeat(data.views[:1], len(data.rgba), 0))
+    rep, _figs = evaluate(Stepper(Rssm(SMALL).eval()), fixed, rollout_steps=8)
+    # No test windows here: the still rollout starts at frame 0 and frames 1-8 are its truth.
+    assert "fixed camera" in rep.motion["truth_source"] and rep.motion["rollouts"] == 1
+    assert rep.motion["truth_energy"] == pytest.approx(motion_energy(premultiplied(data.rgba[1:9])), abs=1e-6)
+    # A fixed camera's own change is also the temperature fit's target.
+    starts, n = long_training_runs(data, 20, 2)
+    frames = premultiplied(fixed.rgba[starts[:, None] + np.arange(1, n)[None]])
+    assert still_view_target(moving_model(), fixed, starts, n) == pytest.approx(np.abs(np.diff(frames, axis=1)).mean(),
+                                                                                rel=1e-4)
+
+
+def test_the_mean_column_needs_an_eager_stepper():
+    m = Rssm(SMALL).eval()
+    st = Stepper(m, 0.7)
+    cold = with_temperature(st, 0.0)
+    assert cold.temperature == 0.0 and st.temperature == 0.7 and cold.decoder is st.decoder
+    assert with_temperature(script_stepper(m), 0.0) is None
+
+
+def test_calibrated_temperature_moves_the_still_view_as_much_as_the_footage(data, monkeypatch):
+    m = moving_model()
+    cal = calibrate_temperature(m, data, steps=20, count=2)
+    assert cal.steps >= data.length - 1 and len(cal.starts) >= 1
+    assert all(data.splits[s:s + cal.steps + 1].tolist() == ["train"] * (cal.steps + 1) for s in cal.starts)
+    starts, n = np.array(cal.starts), cal.steps + 1
+    assert cal.target == pytest.approx(still_view_target(m, data, starts, n))
+    es = [cal.energy[t] for t in sorted(cal.energy)]
+    assert es[-1] > 1.2 * es[0]                     # sampling moves it
+    # Footage between what the temperatures tried give: the fitted one meets it.
+    mid = 0.5 * (cal.energy[0.5] + cal.energy[2.0])
+    monkeypatch.setattr(ev, "still_view_target", lambda *a: mid)
+    fit = calibrate_temperature(m, data, steps=20, count=2)
+    assert 0.5 < fit.temperature < 2.0 and fit.note is None
+    assert still_view_energy(m, data, starts, n, fit.temperature) == pytest.approx(mid, rel=0.25)
+    # Beyond them: the nearest one, said so.
+    monkeypatch.setattr(ev, "still_view_target", lambda *a: 2 * es[-1])
+    hot = calibrate_temperature(m, data, steps=20, count=2)
+    monkeypatch.setattr(ev, "still_view_target", lambda *a: 0.0)
+    cold = calibrate_temperature(m, data, steps=20, count=2)
+    assert hot.temperature == max(CALIBRATION_TEMPERATURES) and "less than the footage" in hot.note
+    assert cold.temperature == min(CALIBRATION_TEMPERATURES) and "more than the footage" in cold.note
+    # No run of consecutive training frames: the fixed default, said so.
+    alternate = replace(data, splits=np.where(np.arange(len(data.splits)) % 2 == 0, "train", "test"))
+    none = calibrate_temperature(m, alternate)
+    assert none.temperature == RUN_TEMPERATURE and none.target is None and "consecutive" in none.note
