@@ -24,13 +24,25 @@ from pathlib import Path
 
 import numpy as np
 import torch
-
-from dbb_capture.bundle import build as B
-from dbb_capture.geometry.conventions import opengl_from_opencv
-from dbb_capture.core.errors import DbbError
-from dbb_capture.core.metrics import psnr_from_mse
-from dbb_capture.bundle.proxy import read_glb, transform_points
 from common import emit  # bench/ is the script folder: on sys.path
+
+from dbb_capture.bundle.build import make_bundle
+from dbb_capture.bundle.manifest import MANIFEST, open_bundle
+from dbb_capture.bundle.proxy import read_glb, transform_points
+from dbb_capture.bundle.render import (
+    SEED,
+    DynamicRenderer,
+    read_cameras,
+    read_rgba,
+    render_bundle,
+    rgba_tensor,
+)
+from dbb_capture.bundle.verify import verify_bundle
+from dbb_capture.core.errors import DbbError
+from dbb_capture.core.images import to_u8
+from dbb_capture.core.metrics import psnr_from_mse
+from dbb_capture.datasets.transforms import intrinsics_fields
+from dbb_capture.geometry.conventions import opengl_from_opencv
 
 
 def true_occupancy(model, t: float, points: np.ndarray) -> np.ndarray:
@@ -55,8 +67,8 @@ def mesh_occupancy(v: np.ndarray, f: np.ndarray, points: np.ndarray) -> np.ndarr
 def flipped_byte_caught(bundle: Path, scratch: Path) -> dict:
     """Flip one byte in the middle of every file of a copy of the bundle: does verify refuse each?"""
     out = {}
-    with B.open_bundle(bundle) as b:
-        rels = [B.MANIFEST] + [e.path for e in b.manifest.files]
+    with open_bundle(bundle) as b:
+        rels = [MANIFEST] + [e.path for e in b.manifest.files]
     for rel in rels:
         bad = scratch / "flipped"
         shutil.rmtree(bad, ignore_errors=True)
@@ -65,7 +77,7 @@ def flipped_byte_caught(bundle: Path, scratch: Path) -> dict:
         data[len(data) // 2] ^= 0x01
         (bad / rel).write_bytes(bytes(data))
         try:
-            B.verify_bundle(bad)
+            verify_bundle(bad)
             out[rel] = "NOT caught"
         except DbbError as e:
             out[rel] = f"caught: {str(e).split(': ', 1)[-1][:80]}"
@@ -74,14 +86,14 @@ def flipped_byte_caught(bundle: Path, scratch: Path) -> dict:
 
 
 def bench_static(run: Path, out: Path, capture: Path | None, seed: int, res: int) -> dict:
-    from dbb_capture.datasets.transforms import load_dataset
     from dbb_capture.datasets.images import load_rgba
+    from dbb_capture.datasets.transforms import load_dataset
     from dbb_capture.octree.render import TreeRenderer
     from dbb_capture.static.run import load_run
 
     out.mkdir(parents=True, exist_ok=True)
     t = time.perf_counter()
-    m = B.make_bundle(run, out / "bundle", overwrite=True)
+    m = make_bundle(run, out / "bundle", overwrite=True)
     bundle_s = time.perf_counter() - t
     if capture is not None:
         from dbb_capture.synth.capture import load_ground_truth
@@ -105,24 +117,24 @@ def bench_static(run: Path, out: Path, capture: Path | None, seed: int, res: int
     ds = load_dataset(Path(load_run(run).record.dataset))
     test = ds.split("test") or ds.frames[::8]
     cams = {"frames": [{"file_path": f"{f.name}.png", "transform_matrix": opengl_from_opencv(f.c2w).tolist(),
-                        **f.intr.nerfstudio_fields()} for f in test]}
+                        **intrinsics_fields(f.intr)} for f in test]}
     (out / "cameras.json").write_text(json.dumps(cams))
     t = time.perf_counter()
-    B.render_bundle(out / "bundle", out / "cameras.json", out / "renders", overwrite=True)
+    render_bundle(out / "bundle", out / "cameras.json", out / "renders", overwrite=True)
     render_s = time.perf_counter() - t
     ref = TreeRenderer(load_run(run).tree())
     rows = []
     for f in test:
         gt = load_rgba(f)
         gt_w = gt[..., :3] * gt[..., 3:] + 1 - gt[..., 3:]
-        got = B.read_rgba(out / "renders" / f"{f.name}.png").astype(np.float32) / 255
+        got = read_rgba(out / "renders" / f"{f.name}.png").astype(np.float32) / 255
         got_w = got[..., :3] * got[..., 3:] + 1 - got[..., 3:]
         run_img = ref.render(f.c2w, f.intr, (1.0, 1.0, 1.0))
         rows.append({"bundle": psnr_from_mse(float(((got_w - gt_w) ** 2).mean())),
                      "run": psnr_from_mse(float(((run_img - gt_w) ** 2).mean())),
                      "bundle_vs_run": psnr_from_mse(float(((got_w - run_img) ** 2).mean()))})
     t = time.perf_counter()
-    checks = B.verify_bundle(out / "bundle")
+    checks = verify_bundle(out / "bundle")
     verify_s = time.perf_counter() - t
     pm = m.proxy_mesh
     return {"run": str(run), "bundle_seconds": round(bundle_s, 1), "proxy": pm,
@@ -138,8 +150,8 @@ def bench_static(run: Path, out: Path, capture: Path | None, seed: int, res: int
 def hull_iou(m, bundle: Path, times: np.ndarray, seed: int, res: int) -> dict:
     """IoU of the proxy with the synthetic dynamic toy (``synth.crops.synthetic_crops``' object, ``seed``):
     against what it occupies in >= 90 % of the frame times (what the carving keeps), and at t = 0."""
-    from dbb_capture.synth.scene import SynthConfig
     from dbb_capture.synth.objects import make_object
+    from dbb_capture.synth.scene import SynthConfig
 
     model = make_object("dynamic", SynthConfig().board, np.random.default_rng(seed))
     c, r = m.center, m.radius
@@ -162,7 +174,7 @@ def bench_dynamic(run: Path, out: Path, seed: int | None, res: int) -> dict:
 
     out.mkdir(parents=True, exist_ok=True)
     t = time.perf_counter()
-    m = B.make_bundle(run, out / "bundle", overwrite=True)
+    m = make_bundle(run, out / "bundle", overwrite=True)
     bundle_s = time.perf_counter() - t
     meta = json.loads((run / "run.json").read_text())
     doc = json.loads((Path(meta["dataset"]) / "crops.json").read_text())
@@ -170,25 +182,25 @@ def bench_dynamic(run: Path, out: Path, seed: int | None, res: int) -> dict:
     doc["frames"] = doc["frames"][:24]
     (out / "cameras.json").write_text(json.dumps(doc))
     t = time.perf_counter()
-    B.render_bundle(out / "bundle", out / "cameras.json", out / "renders", overwrite=True)
+    render_bundle(out / "bundle", out / "cameras.json", out / "renders", overwrite=True)
     render_s = time.perf_counter() - t
     # The run's own stepper, same first frame, viewpoints and seed.
     stepper = torch.jit.load(str(run / meta["stepper"]["file"]))
-    with B.open_bundle(out / "bundle") as b:
-        r = B.DynamicRenderer(b)
-        views = B.read_cameras(out / "cameras.json")
+    with open_bundle(out / "bundle") as b:
+        r = DynamicRenderer(b)
+        views = read_cameras(out / "cameras.json")
         vv = np.stack([r.view_of(v) for v in views])
-        first = B._rgba_tensor(r.first, r.size)
-        torch.manual_seed(B.SEED)
+        first = rgba_tensor(r.first, r.size)
+        torch.manual_seed(SEED)
         x = rollout(stepper, first, torch.from_numpy(np.concatenate([r.first_view[None], vv]))[None].float())[0]
-        ref = B.to_u8(x.permute(0, 2, 3, 1).numpy())
+        ref = to_u8(x.permute(0, 2, 3, 1).numpy())
         rows = []
         for k, v in enumerate(views):
-            got = B.read_rgba(out / "renders" / v.name).astype(np.float32) / 255
+            got = read_rgba(out / "renders" / v.name).astype(np.float32) / 255
             want = r.warp(ref[k], v).astype(np.float32) / 255
             rows.append(psnr_from_mse(float(((got - want) ** 2).mean())))
     t = time.perf_counter()
-    checks = B.verify_bundle(out / "bundle")
+    checks = verify_bundle(out / "bundle")
     verify_s = time.perf_counter() - t
     return {"run": str(run), "bundle_seconds": round(bundle_s, 1), "proxy": m.proxy_mesh,
             "proxy_vs_truth": hull_iou(m, out / "bundle", times, seed, res) if seed is not None else None,

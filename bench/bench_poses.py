@@ -38,11 +38,11 @@ from pathlib import Path
 import numpy as np
 
 from dbb_capture.capture.board import BoardSpec
-from dbb_capture.geometry.conventions import opencv_from_opengl
 from dbb_capture.capture.footage import VideoSource, open_footage
+from dbb_capture.geometry.conventions import opencv_from_opengl
 from dbb_capture.poses.detect import DetectorConfig
-from dbb_capture.poses.solve import PoseConfig
 from dbb_capture.poses.run import estimate_poses
+from dbb_capture.poses.solve import PoseConfig
 
 # dbb_capture.synth.scene (and torch with it) is imported inside the functions that render: spawned
 # pose workers re-import this main module, and torch would cost each of them seconds to load.
@@ -96,8 +96,8 @@ def accuracy(work: Path, seconds: float, fps: float, cases: list[int] | None = N
     the table's captures; other seeds render further captures with the same settings);
     ``refine``: also self-calibrated with ``--refine``; ``path_window``: the poses' fusion with the
     camera path (``PoseConfig.path_window``; 0: off; None: the default)."""
-    from dbb_capture.synth.scene import SynthConfig
     from dbb_capture.synth.capture import load_ground_truth, write_capture
+    from dbb_capture.synth.scene import SynthConfig
 
     rows = []
     cases = list(range(len(CASES))) if cases is None else cases
@@ -170,8 +170,8 @@ def _cpu_seconds() -> float:
 def speed(work: Path, seconds: float, repeats: int) -> None:
     import cv2
 
-    from dbb_capture.synth.scene import SynthConfig
     from dbb_capture.synth.capture import load_ground_truth, write_capture
+    from dbb_capture.synth.scene import SynthConfig
 
     cap = work / "speed1920"
     board = BoardSpec(7, 5, 0.05, 0.0375, "DICT_5X5_100")

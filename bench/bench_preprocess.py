@@ -52,10 +52,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from dbb_capture.geometry.cameras import Intrinsics, project_points
-from dbb_capture.geometry.rays import camera_rays
-from dbb_capture.geometry.conventions import opencv_from_opengl
 from dbb_capture.crops.camera import crop_maps, cut_crop
+from dbb_capture.geometry.cameras import Intrinsics, project_points
+from dbb_capture.geometry.conventions import opencv_from_opengl
+from dbb_capture.geometry.rays import camera_rays
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -132,9 +132,10 @@ def both_passes(crops: list, times: np.ndarray, fill: float, cfg, counts: np.nda
     in time order, ``times`` (N,) s) after the second pass, as the crops stage runs it: the
     capture's statistics (``counts``: summed sure object colours where a prediction was a guess),
     matte again, temporal median over neighbouring frames."""
-    from dbb_capture.crops.object import at_output, rematte as second, vote_neighbours, voted_rgba
-    from dbb_capture.crops.sequences import follows_previous
     from dbb_capture.crops.matte import capture_matte
+    from dbb_capture.crops.object import at_output, vote_neighbours, voted_rgba
+    from dbb_capture.crops.object import rematte as second
+    from dbb_capture.crops.sequences import follows_previous
 
     cap = capture_matte([oc.noise for oc in crops], counts, [oc.room_detail for oc in crops], cfg.sharp_min_detail)
     alphas = [second(oc, fill, cap, cfg) for oc in crops]
@@ -150,10 +151,10 @@ def rematte(capture: Path, dataset: Path) -> tuple[Path, Path]:
     import shutil
 
     from dbb_capture.background.model import BackgroundModel
-    from dbb_capture.crops.object import at_output, matte_scale, object_crop
-    from dbb_capture.crops.camera import crop_windows
     from dbb_capture.capture.footage import open_footage
+    from dbb_capture.crops.camera import crop_windows
     from dbb_capture.crops.matte import MatteConfig, sure_object_counts
+    from dbb_capture.crops.object import at_output, matte_scale, object_crop
 
     intr = Intrinsics.load(dataset / "camera.json")
     doc = json.loads((dataset / "crops.json").read_text())
@@ -206,8 +207,8 @@ def budget_crops(capture: Path, cache: Path, size: int = 64, fill: float = 0.9, 
     true coverage through the crop camera (``cover``, 0..1, ``samples`` x ``samples`` per pixel)
     and the capture's full-frame coverage cut through the crop warp (``warped``, 0..1: what
     ``score`` compares with); ``times`` (N,) s."""
-    from dbb_capture.crops.camera import crop_camera
     from dbb_capture.capture.footage import open_footage
+    from dbb_capture.crops.camera import crop_camera
     from dbb_capture.synth.render import Renderer
 
     if cache.is_file():
@@ -266,8 +267,8 @@ def budget(work: Path, captures: list[Path], fill: float = 0.9) -> list[dict]:
     (b) the matte of the real footage's crop against the perfect background (what the footage's
     noise, compression and chroma cost the matte; the rest of the ``quality`` figure is the
     background field's)."""
-    from dbb_capture.crops.object import ObjectCrop
     from dbb_capture.crops.matte import MatteConfig, matte_and_noise, sphere_disc
+    from dbb_capture.crops.object import ObjectCrop
 
     cfg = MatteConfig()
     rows = []
@@ -351,10 +352,10 @@ def quality(work: Path, captures: list[Path], minutes: float, rescore: bool = Fa
 def speed(work: Path, minutes: float) -> None:
     from dbb_capture.background.model import BackgroundModel
     from dbb_capture.capture.board import BoardSpec
+    from dbb_capture.capture.footage import open_footage
+    from dbb_capture.crops.matte import capture_matte
     from dbb_capture.crops.object import at_output, object_crop, rematte, voted_rgba
     from dbb_capture.geometry.viewpoint import up_from_cameras
-    from dbb_capture.crops.matte import capture_matte
-    from dbb_capture.capture.footage import open_footage
     from dbb_capture.poses.detect import DetectorConfig, detect_frames
     from dbb_capture.poses.path import fuse_with_path
     from dbb_capture.poses.solve import pose_frames

@@ -40,16 +40,27 @@ import torch
 
 from dbb_capture.core.errors import DbbError
 from dbb_capture.core.metrics import psnr
-from dbb_capture.dynamic.config import RssmConfig, TrainConfig, apply_preset, configs_from_settings
+from dbb_capture.dynamic.config import (
+    RssmConfig,
+    TrainConfig,
+    apply_preset,
+    configs_from_settings,
+)
 from dbb_capture.dynamic.data import batch as window_batch
 from dbb_capture.dynamic.data import load_sequences
 from dbb_capture.dynamic.evaluate import evaluate as evaluate_stepper
 from dbb_capture.dynamic.evaluate import motion_coherence
 from dbb_capture.dynamic.model import Rssm, decoder_input, sample
 from dbb_capture.dynamic.networks import warp_maps
-from dbb_capture.dynamic.rgba import premultiplied, premultiply
 from dbb_capture.dynamic.record import RunRecord
-from dbb_capture.dynamic.run import eval_run, load_model, resume_configs, run_eval, train_run
+from dbb_capture.dynamic.rgba import premultiplied, premultiply
+from dbb_capture.dynamic.run import (
+    eval_run,
+    load_model,
+    resume_configs,
+    run_eval,
+    train_run,
+)
 from dbb_capture.dynamic.stepper import Stepper, rollout, script_stepper
 from dbb_capture.dynamic.views import view_delta_encoding
 

@@ -21,10 +21,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from dbb_capture.synth.capture import write_capture
+from dbb_capture.synth.path import camera_path
 from dbb_capture.synth.render import Renderer
 from dbb_capture.synth.scene import SynthConfig, make_scene
-from dbb_capture.synth.path import camera_path
-from dbb_capture.synth.capture import write_capture
 
 
 def main() -> None:

@@ -73,8 +73,8 @@ def synth(out: Path, kind: str, seconds: float, background_seconds: float | None
     and ground_truth/ (intrinsics, per-frame poses, object masks, the object's model).
     """
     from dbb_capture.capture.board import BoardSpec
-    from dbb_capture.synth.scene import SynthConfig
     from dbb_capture.synth.capture import write_capture
+    from dbb_capture.synth.scene import SynthConfig
 
     try:
         w, h = (int(v) for v in resolution.lower().split("x"))
@@ -128,11 +128,11 @@ def calibrate(input_path: Path, board_path: Path | None, output: Path, fps: floa
     views (see docs/commands/calibrate.md).
     """
     from dbb_capture.capture.board import BoardSpec
-    from dbb_capture.core.errors import DbbError
     from dbb_capture.capture.footage import open_footage
+    from dbb_capture.core.errors import DbbError
     from dbb_capture.core.outputs import write_json
-    from dbb_capture.poses.calibrate import calibrate_footage
     from dbb_capture.core.progress import progress
+    from dbb_capture.poses.calibrate import calibrate_footage
 
     if output.exists() and not overwrite:
         raise DbbError(f"{output} already exists (pass --overwrite to replace it)")

@@ -50,7 +50,7 @@ def bundle(run, out, zip_it, dataset, overwrite) -> None:
 @overwrite_option
 def render(bundle, cameras, out, first_frame, space, overwrite) -> None:
     """Render the BUNDLE (folder or .dbb) from every camera of a cameras file."""
-    from dbb_capture.bundle.build import render_bundle
+    from dbb_capture.bundle.render import render_bundle
     from dbb_capture.core.progress import console
 
     paths = render_bundle(bundle, cameras, out, first_frame, space, overwrite)
@@ -62,7 +62,7 @@ def render(bundle, cameras, out, first_frame, space, overwrite) -> None:
 def verify(bundle) -> None:
     """Check BUNDLE: manifest checksum and schema, file hashes, model and proxy mesh load, and a
     fresh render matches the stored preview. Exit 2 with the first failure."""
-    from dbb_capture.bundle.build import verify_bundle
+    from dbb_capture.bundle.verify import verify_bundle
     from dbb_capture.core.progress import console
 
     for line in verify_bundle(bundle):

@@ -60,9 +60,9 @@ def plenoctree(dataset, out, minutes, steps, downscale, resume, overwrite, mode,
     DATASET is a preprocess output (crops.json) or a nerfstudio / instant-ngp / Blender
     dataset folder or json file.
     """
+    from dbb_capture.core.progress import console
     from dbb_capture.static.field import FieldConfig
     from dbb_capture.static.run import RunConfig, train_run
-    from dbb_capture.core.progress import console
 
     if threads:
         import torch
@@ -119,7 +119,12 @@ def rssm(dataset, out, minutes, steps, size, batch, threads, seed, temperature, 
     import torch
 
     from dbb_capture.core.errors import DbbError
-    from dbb_capture.dynamic.config import RssmConfig, TrainConfig, apply_preset, configs_from_settings
+    from dbb_capture.dynamic.config import (
+        RssmConfig,
+        TrainConfig,
+        apply_preset,
+        configs_from_settings,
+    )
     from dbb_capture.dynamic.run import resume_configs, train_run
 
     if threads:

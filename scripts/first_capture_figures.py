@@ -45,9 +45,9 @@ def _u8(rgb: np.ndarray) -> np.ndarray:
 def figures(out: Path, bundle: Path | None) -> list[Path]:
     from dbb_capture.geometry.transforms import look_at
     from dbb_capture.synth.objects import UP
+    from dbb_capture.synth.path import camera_path
     from dbb_capture.synth.render import Renderer
     from dbb_capture.synth.scene import SynthConfig, make_scene
-    from dbb_capture.synth.path import camera_path
 
     out.mkdir(parents=True, exist_ok=True)
     made = []

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from dbb_capture.capture.board import BoardSpec
+from dbb_capture.datasets.records import Frame, ObjectVolume
 from dbb_capture.geometry.cameras import Intrinsics
 from dbb_capture.geometry.transforms import look_at
 from dbb_capture.synth.capture import write_capture
@@ -85,3 +86,28 @@ def distorted_capture(tmp_path_factory) -> Path:
     write_capture(SynthConfig(kind="static", seconds=2.0, fps=5, width=320, height=240, board=board,
                               background_seconds=None, seed=5, dist=(-0.1, 0.03, 0.0, 0.0, 0.0)), out)
     return out
+
+
+def synthetic_object_frames(folder, n=24, size=32, seed=0) -> tuple[list[Frame], ObjectVolume]:
+    """RGBA renders (size x size px, written to ``folder``) of the synthetic toy from known poses
+    around it, every 8th (from the 4th) held out; and the sphere that holds it."""
+    import cv2
+
+    from dbb_capture.synth.objects import make_object
+    from dbb_capture.synth.render import render_object_rgba
+
+    model = make_object("static", BoardSpec(7, 5, 0.05, 0.0375, "DICT_5X5_100"), np.random.default_rng(seed))
+    c, r = model.bounding_sphere(np.array([0.0]))
+    f = size * 1.2
+    intr = Intrinsics(size, size, f, f, (size - 1) / 2, (size - 1) / 2)
+    dist = 1.1 * r / math.sin(math.atan(0.5 / 1.2))
+    rng = np.random.default_rng(seed + 1)
+    frames = []
+    for i in range(n):
+        az, el = 2 * math.pi * i / n + rng.uniform(0, 0.2), rng.uniform(0.15, 1.2)
+        eye = c + dist * np.array([math.cos(az) * math.cos(el), math.sin(az) * math.cos(el), -math.sin(el)])
+        c2w = look_at(eye, c, np.array([0, 0, -1.0]))
+        p = folder / f"{i:03d}.png"
+        cv2.imwrite(str(p), cv2.cvtColor(render_object_rgba(model, intr, c2w, 0.0, samples=2), cv2.COLOR_RGBA2BGRA))
+        frames.append(Frame(f"{i:03d}", p, c2w, intr, "test" if i % 8 == 3 else "train"))
+    return frames, ObjectVolume(tuple(float(v) for v in c), float(r) * 1.05)

@@ -17,7 +17,7 @@ from ..geometry.cameras import project_points
 from .config import BackgroundConfig
 from .field import LayerField, field_basis
 from .model import BackgroundModel, TrainLog
-from .panorama import equirect, sphere_exit, env_coords
+from .panorama import env_coords, equirect, sphere_exit
 from .rays import RayBank, TrainingView, build_bank
 
 

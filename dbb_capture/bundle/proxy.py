@@ -207,8 +207,8 @@ def _view_spread_deg(dirs: np.ndarray) -> float:
 def _project(P: np.ndarray, c2w: np.ndarray, intr) -> np.ndarray:
     """Pixels (N, 2) of board points (N, 3): plain pinhole maths for undistorted crop cameras
     (cv2.projectPoints is ~10x slower on a voxel grid), the lens model otherwise."""
-    from ..geometry.transforms import invert_rigid
     from ..geometry.cameras import project_points
+    from ..geometry.transforms import invert_rigid
 
     if intr.distorted:
         return project_points(P, c2w, intr)
@@ -227,8 +227,8 @@ def dynamic_proxy(crops_json: Path, center: np.ndarray, radius: float, T: np.nda
     matte (alpha > 0.5) in at least ``agree`` of the views that see it; a moving object thus
     keeps what it occupies most of the time.
     """
-    from ..datasets.transforms import load_dataset
     from ..datasets.images import load_rgba
+    from ..datasets.transforms import load_dataset
 
     center = np.asarray(center, float)
     try:

@@ -21,8 +21,8 @@ from typing import Iterator, Sequence
 import cv2
 import numpy as np
 
-from ..geometry.cameras import Intrinsics
 from ..core.errors import DbbError, InputError
+from ..geometry.cameras import Intrinsics
 
 VIDEO_EXTS = (".mp4", ".mov", ".m4v", ".avi", ".mkv", ".webm")
 IMAGE_EXTS = (".jpg", ".jpeg", ".png")

@@ -40,6 +40,12 @@ def atomic_dir(final: Path, overwrite: bool = False) -> Iterator[Path]:
         shutil.rmtree(old, ignore_errors=True)
 
 
+def empty_dir(path: Path) -> bool:
+    """Whether ``path`` is an empty folder: one someone made for an output is no result to protect."""
+    p = Path(path)
+    return p.is_dir() and not any(p.iterdir())
+
+
 def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)

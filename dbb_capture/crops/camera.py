@@ -26,7 +26,6 @@ from ..core.errors import DbbError
 from ..geometry.cameras import Intrinsics
 from ..geometry.transforms import invert_rigid, look_at
 from ..geometry.viewpoint import Viewpoint, viewpoint
-from .sequences import sequence_windows
 
 
 @dataclass(frozen=True)
@@ -130,60 +129,6 @@ def cut_crop(image: np.ndarray, cam: CropCamera, src: Intrinsics, src_c2w: np.nd
     if out.ndim == 2 and image.ndim == 3:
         out = out[..., None]
     return out, touched
-
-
-@dataclass(frozen=True)
-class CropRecord:
-    """One crop of the dataset: its image file, its camera, where it came from."""
-
-    file_path: str            # relative to the dataset folder, e.g. "crops/00012.png"
-    cam: CropCamera
-    source_frame: int
-    time: float
-    split: str
-    touches_border: bool = False
-    mask_path: str | None = None
-    # The observed crop (RGB) and the background predicted there (RGB), e.g.
-    # "crops_observed/00012.png", "crops_background/00012.png": what the matte was cut from,
-    # so training can composite over the predicted room instead of trusting the matte alone.
-    observed_path: str | None = None
-    background_path: str | None = None
-
-    def to_json(self) -> dict:
-        from ..geometry.conventions import opengl_from_opencv
-
-        i = self.cam.intr
-        d = {"file_path": self.file_path,
-             "transform_matrix": opengl_from_opencv(self.cam.c2w).round(9).tolist(),
-             "fl_x": i.fx, "fl_y": i.fy, "cx": i.cx, "cy": i.cy, "w": i.width, "h": i.height,
-             "source_frame": self.source_frame, "time": round(self.time, 6),
-             "viewpoint": self.cam.viewpoint.to_json(), "split": self.split,
-             "touches_border": self.touches_border}
-        if self.mask_path:
-            d["mask_path"] = self.mask_path
-        if self.observed_path and self.background_path:
-            d["observed_path"] = self.observed_path
-            d["background_path"] = self.background_path
-        return d
-
-
-def crops_json(records: list[CropRecord], center: np.ndarray, radius: float, up: np.ndarray,
-               size: int, fill: float, sequence_length: int = 11) -> dict:
-    """The ``crops.json`` document: nerfstudio schema with per-frame crop intrinsics.
-
-    Top level also records the object sphere (board frame), the up direction, the crop size
-    and fill, and the sequence windows (start frame indices of 1 context + N predicted).
-    """
-    times = np.array([r.time for r in records])
-    splits = np.array([r.split for r in records])
-    windows = sequence_windows(times, splits, sequence_length)
-    return {"camera_model": "OPENCV", "w": size, "h": size,
-            "k1": 0.0, "k2": 0.0, "k3": 0.0, "p1": 0.0, "p2": 0.0,
-            "object": {"center": [round(float(v), 6) for v in center], "radius": round(float(radius), 6)},
-            "up": [float(v) for v in up], "crop_size": size, "crop_fill": fill,
-            "sequence_length": sequence_length,
-            "sequences": [{"start": s, "split": sp} for s, sp in windows],
-            "frames": [r.to_json() for r in records]}
 
 
 def crop_windows(c2ws, src: Intrinsics, center: np.ndarray, radius: float, up: np.ndarray, size: int,

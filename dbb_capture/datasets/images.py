@@ -7,8 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.errors import InputError
-from ..geometry.cameras import Intrinsics
-from ..geometry.cameras import scaled_intrinsics
+from ..geometry.cameras import Intrinsics, scaled_intrinsics
 from .records import Frame
 
 

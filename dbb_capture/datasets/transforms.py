@@ -29,7 +29,6 @@ from ..geometry.conventions import opencv_from_opengl, opengl_from_opencv
 from ..geometry.viewpoint import Viewpoint
 from .records import Frame, ObjectVolume, PosedDataset
 
-
 DATASET_FILES = ("crops.json", "transforms.json", "transforms_train.json")
 
 
@@ -135,11 +134,7 @@ def load_dataset(path: Path) -> PosedDataset:
             intr = _intrinsics(f, top, size, where)
         else:
             intr = top
-        m = np.asarray(f["transform_matrix"], dtype=np.float64)
-        if m.shape == (3, 4):
-            m = np.vstack([m, [0, 0, 0, 1]])
-        if m.shape != (4, 4) or not np.all(np.isfinite(m)):
-            raise InputError(f"{where}: transform_matrix must be 4x4 finite numbers")
+        m = _camera_to_world(f, where)
         mask = _resolve_image(root, str(f["mask_path"]), where) if f.get("mask_path") else None
         split = str(f.get("split", "train"))
         if split not in ("train", "test"):
@@ -148,7 +143,7 @@ def load_dataset(path: Path) -> PosedDataset:
         if f.get("observed_path") and f.get("background_path"):
             seen = _resolve_image(root, str(f["observed_path"]), where)
             room = _resolve_image(root, str(f["background_path"]), where)
-        frames.append(Frame(Path(f["file_path"]).stem, img, opencv_from_opengl(m), intr, split, mask,
+        frames.append(Frame(Path(f["file_path"]).stem, img, m, intr, split, mask,
                             float(f["time"]) if f.get("time") is not None else None, seen, room,
                             int(f["source_frame"]) if f.get("source_frame") is not None else None,
                             _viewpoint(f.get("viewpoint"), where),
@@ -158,6 +153,54 @@ def load_dataset(path: Path) -> PosedDataset:
     volume = _read_volume(meta, root)
     return PosedDataset(src, kind, frames, rgba, volume,
                         {k: v for k, v in meta.items() if k not in ("frames",)})
+
+
+def load_cameras(path: Path) -> list[Frame]:
+    """The cameras of a transforms-style cameras file (top-level or per-frame intrinsics, OpenGL
+    camera-to-world): frames named after the basename of their ``file_path``, whose images need
+    not exist (``image_path`` is the path as written). One clear :class:`InputError` otherwise."""
+    path = Path(path)
+    meta = read_json(path, "cameras file")
+    if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
+        raise InputError(f"{path}: no frames")
+    focal = ("fl_x", "fl_y", "camera_angle_x")
+    top = _intrinsics(meta, None, None, str(path)) if any(k in meta for k in focal) else None
+    frames = []
+    for i, f in enumerate(meta["frames"]):
+        where = f"{path} frame {i}"
+        if not isinstance(f, dict) or "file_path" not in f or "transform_matrix" not in f:
+            raise InputError(f"{where}: needs file_path and transform_matrix")
+        if top is None and not any(k in f for k in focal):
+            raise InputError(f"{where}: missing intrinsics (fl_x, fl_y, cx, cy, w, h at the top level or per frame)")
+        intr = _intrinsics(f, top, None, where) if top is None or any(k in f for k in focal) else top
+        frames.append(Frame(Path(str(f["file_path"])).stem, Path(str(f["file_path"])), _camera_to_world(f, where), intr,
+                            time=float(f["time"]) if isinstance(f.get("time"), (int, float)) else None))
+    return frames
+
+
+def load_poses(path: Path) -> tuple[np.ndarray, dict]:
+    """The camera poses of a dataset folder or file without reading its images or intrinsics:
+    OpenCV camera-to-world (N, 4, 4) of its frames, and its top-level keys (``up``, ``object`` ...)."""
+    src = find_dataset_file(Path(path))
+    meta = read_json(src, "dataset")
+    if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
+        raise InputError(f"{src}: no frames")
+    c2w = np.stack([_camera_to_world(f if isinstance(f, dict) else {}, f"{src} frame {i}")
+                    for i, f in enumerate(meta["frames"])])
+    return c2w, {k: v for k, v in meta.items() if k != "frames"}
+
+
+def _camera_to_world(f: dict, where: str) -> np.ndarray:
+    """A frame's OpenCV camera-to-world (4, 4) from its OpenGL ``transform_matrix`` (4x4 or 3x4)."""
+    try:
+        m = np.asarray(f["transform_matrix"], dtype=np.float64)
+    except (KeyError, TypeError, ValueError):
+        m = np.zeros(0)
+    if m.shape == (3, 4):
+        m = np.vstack([m, [0, 0, 0, 1]])
+    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+        raise InputError(f"{where}: transform_matrix must be 4x4 finite numbers")
+    return opencv_from_opengl(m)
 
 
 def _viewpoint(vp, where: str) -> Viewpoint | None:

@@ -17,7 +17,7 @@ from __future__ import annotations
 import torch
 
 from .config import LOSS_SCALES
-from .model import States, Rssm, sample
+from .model import Rssm, States, sample
 
 # The training open loop starts from the filtering state of frame 1, after the posterior has seen
 # frames 0 and 1. From frame 0 (the run-time start exactly) one frame cannot tell which way a swing

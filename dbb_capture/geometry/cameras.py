@@ -10,6 +10,7 @@ import numpy as np
 from ..core.errors import DbbError
 from .transforms import invert_rigid
 
+
 @dataclass(frozen=True)
 class Intrinsics:
     """Pinhole intrinsics with OpenCV distortion (k1, k2, p1, p2, k3); pixels, OpenCV centres."""
@@ -65,13 +66,6 @@ class Intrinsics:
         from ..core.outputs import read_json
 
         return cls.from_json(read_json(path, "camera file"), str(path))
-
-    def nerfstudio_fields(self) -> dict:
-        """The intrinsics keys of a nerfstudio ``transforms.json`` (OPENCV camera model)."""
-        k1, k2, p1, p2, k3 = (float(v) for v in self.dist_array)
-        return {"camera_model": "OPENCV", "fl_x": self.fx, "fl_y": self.fy, "cx": self.cx,
-                "cy": self.cy, "w": self.width, "h": self.height,
-                "k1": k1, "k2": k2, "k3": k3, "p1": p1, "p2": p2}
 
     def undistorted(self) -> "Intrinsics":
         """Same pinhole with no distortion (for undistorted images of the same size)."""

@@ -8,10 +8,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ..background.config import training_size
 from ..background.model import BackgroundModel
 from ..background.rays import TrainingView
 from ..background.train import parallax_coverage, train_background
-from ..background.config import training_size
 from ..capture.footage import FootageSource, open_footage
 from ..core.errors import InputError
 from ..core.outputs import read_json, write_json

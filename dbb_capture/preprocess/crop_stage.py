@@ -16,16 +16,23 @@ import cv2
 import numpy as np
 
 from ..background.model import BackgroundModel
-from ..background.train import refine_on_room
 from ..background.rays import room_rays
+from ..background.train import refine_on_room
 from ..capture.footage import FootageSource
 from ..core.images import write_image
 from ..core.outputs import write_json
 from ..core.progress import progress
 from ..crops.matte import CaptureMatte, MatteConfig, capture_matte, sure_object_counts
-from ..crops.object import ObjectCrop, alpha_in_frame, at_output, object_crop, rematte, vote_neighbours, voted_rgba
-from ..crops.sequences import follows_previous, split_by_time
-from ..crops.sequences import sequence_windows
+from ..crops.object import (
+    ObjectCrop,
+    alpha_in_frame,
+    at_output,
+    object_crop,
+    rematte,
+    vote_neighbours,
+    voted_rgba,
+)
+from ..crops.sequences import follows_previous, sequence_windows, split_by_time
 from ..datasets.records import Frame
 from ..datasets.transforms import write_crops
 from ..geometry.cameras import Intrinsics

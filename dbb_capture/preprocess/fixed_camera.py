@@ -14,15 +14,13 @@ from ..core.outputs import write_json
 from ..core.progress import progress
 from ..crops.matte import matte
 from ..crops.object import ObjectCrop
-from ..crops.sequences import sequence_windows
-from ..crops.sequences import split_by_time
+from ..crops.sequences import sequence_windows, split_by_time
 from ..datasets.records import Frame
 from ..datasets.transforms import write_crops
 from ..geometry.cameras import Intrinsics
 from .crop_stage import CropsOutput
 from .inputs import StageContext
 from .report import sequence_counts, sheet_row
-
 
 FIXED_HFOV_DEG = 60.0  # nominal field of view given to footage without a board (no metric camera)
 

@@ -25,7 +25,6 @@ from .fixed_camera import fixed_camera_stage
 from .inputs import CaptureInputs, PreprocessConfig, Stage, StageContext
 from .pose_stage import poses_stage
 
-
 STAGES: list[Stage] = [Stage("poses", poses_stage), Stage("background", background_stage),
                        Stage("crops", crops_stage)]
 

@@ -9,14 +9,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..core.outputs import write_json
 from ..core.progress import progress
-from ..crops.camera import CropRecord, crop_camera, crops_json
-from ..crops.sequences import split_by_time
+from ..crops.camera import crop_camera
+from ..crops.sequences import sequence_windows, split_by_time
+from ..datasets.records import Frame
+from ..datasets.transforms import write_crops
 from .objects import UP
-from .scene import SynthConfig, make_scene
 from .path import camera_path
 from .render import render_object_rgba
+from .scene import SynthConfig, make_scene
+
+SEQUENCE_LENGTH = 11     # preprocess's default windows: 1 context + 10 predicted frames
 
 
 @dataclass(frozen=True)
@@ -48,7 +51,7 @@ def synthetic_crops(out: Path, seconds: float = 60.0, fps: float = 10.0, size: i
     splits = split_by_time(times)
     out = Path(out)
     (out / "crops").mkdir(parents=True, exist_ok=True)
-    records = []
+    frames = []
     cams = []
     with progress(transient=True) as prog:
         task = prog.add_task("render crops", total=len(times), info="")
@@ -56,10 +59,12 @@ def synthetic_crops(out: Path, seconds: float = 60.0, fps: float = 10.0, size: i
             cam = crop_camera(c2w, intr, center, radius, UP, size, 0.9)
             rgba = render_object_rgba(scene.obj, cam.intr, cam.c2w, float(t), samples)
             cv2.imwrite(str(out / "crops" / f"{i:05d}.png"), cv2.cvtColor(rgba, cv2.COLOR_RGBA2BGRA))
-            records.append(CropRecord(f"crops/{i:05d}.png", cam, i, float(t), str(splits[i])))
+            frames.append(Frame(f"{i:05d}", out / "crops" / f"{i:05d}.png", cam.c2w, cam.intr, str(splits[i]),
+                                time=float(t), source_frame=i, viewpoint=cam.viewpoint, touches_border=False))
             cams.append(cam)
             prog.update(task, advance=1)
-        write_json(out / "crops.json", crops_json(records, center, radius, UP, size, 0.9))
+        write_crops(out / "crops.json", frames, center, radius, UP, size, 0.9, SEQUENCE_LENGTH,
+                    sequence_windows(times, splits, SEQUENCE_LENGTH))
         k = int(np.flatnonzero(splits == "test")[0]) if (splits == "test").any() else 0
         cam = cams[k]
         still = []

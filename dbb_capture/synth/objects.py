@@ -14,7 +14,6 @@ import numpy as np
 from ..capture.board import BoardSpec
 from ..core.errors import DbbError
 
-
 UP = np.array([0.0, 0.0, -1.0])  # board normal on the cameras' side (board face up on a table)
 
 

@@ -19,11 +19,16 @@ from dbb_capture.datasets.records import (
     estimate_volume,
     holdout_every,
 )
-from dbb_capture.datasets.transforms import load_dataset, write_crops, write_transforms
+from dbb_capture.datasets.transforms import (
+    intrinsics_fields,
+    load_dataset,
+    write_crops,
+    write_transforms,
+)
 from dbb_capture.geometry.cameras import Intrinsics
 from dbb_capture.geometry.conventions import opengl_from_opencv
 
-from .conftest import INTR, write_image, poses_around
+from .conftest import INTR, poses_around, write_image
 
 
 def test_transforms_json_conventions_paths_and_per_frame_intrinsics(tmp_path):
@@ -35,7 +40,7 @@ def test_transforms_json_conventions_paths_and_per_frame_intrinsics(tmp_path):
         frames.append({"file_path": f"img/{i}.jpg", "transform_matrix": opengl_from_opencv(c2w).tolist()})
     frames[2]["file_path"] = str((tmp_path / "img" / "2.jpg").resolve())       # absolute path
     frames[3].update({"fl_x": 61.0, "fl_y": 62.0, "cx": 20.0, "cy": 15.0})       # per-frame intrinsics
-    meta = {**INTR.nerfstudio_fields(), "frames": frames}
+    meta = {**intrinsics_fields(INTR), "frames": frames}
     (tmp_path / "transforms.json").write_text(json.dumps(meta))
     ds = load_dataset(tmp_path)
     assert ds.kind == "transforms" and not ds.rgba and len(ds.frames) == 4
@@ -116,7 +121,7 @@ def test_bad_datasets_fail_clearly(tmp_path):
     with pytest.raises(DbbError, match="none of"):
         load_dataset(tmp_path)
     (tmp_path / "transforms.json").write_text(json.dumps(
-        {**INTR.nerfstudio_fields(), "frames": [{"file_path": "nope.png", "transform_matrix": np.eye(4).tolist()}]}))
+        {**intrinsics_fields(INTR), "frames": [{"file_path": "nope.png", "transform_matrix": np.eye(4).tolist()}]}))
     with pytest.raises(DbbError, match="image not found"):
         load_dataset(tmp_path)
 

@@ -7,9 +7,18 @@ from dataclasses import asdict, replace
 import pytest
 
 from dbb_capture.core.errors import DbbError
-from dbb_capture.dynamic.config import (LOSS_SCALES, PRESETS_DIR, RssmConfig, TrainConfig, apply_preset,
-                                        configs_from_settings, leak_at_frame_rate, preset_names, read_preset,
-                                        setting_names)
+from dbb_capture.dynamic.config import (
+    LOSS_SCALES,
+    PRESETS_DIR,
+    RssmConfig,
+    TrainConfig,
+    apply_preset,
+    configs_from_settings,
+    leak_at_frame_rate,
+    preset_names,
+    read_preset,
+    setting_names,
+)
 
 from .conftest import SMALL, scaled
 

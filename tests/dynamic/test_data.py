@@ -10,8 +10,15 @@ import pytest
 import torch
 
 from dbb_capture.core.errors import DbbError
-from dbb_capture.dynamic.data import (SequenceData, augment, batch, load_sequences, long_training_runs,
-                                      shift_windows, training_windows)
+from dbb_capture.dynamic.data import (
+    SequenceData,
+    augment,
+    batch,
+    load_sequences,
+    long_training_runs,
+    shift_windows,
+    training_windows,
+)
 
 
 def test_dataset_reads_crops_json_windows_and_viewpoints(crops, data):

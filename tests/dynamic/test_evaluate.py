@@ -10,9 +10,18 @@ import pytest
 from dbb_capture.core.metrics import psnr
 from dbb_capture.dynamic import evaluate as ev
 from dbb_capture.dynamic.data import SequenceData, long_training_runs
-from dbb_capture.dynamic.evaluate import (CALIBRATION_TEMPERATURES, RUN_TEMPERATURE, calibrate_temperature, evaluate,
-                                          motion_coherence, motion_energy, nearest_training_frames,
-                                          still_view_energy, still_view_target, with_temperature)
+from dbb_capture.dynamic.evaluate import (
+    CALIBRATION_TEMPERATURES,
+    RUN_TEMPERATURE,
+    calibrate_temperature,
+    evaluate,
+    motion_coherence,
+    motion_energy,
+    nearest_training_frames,
+    still_view_energy,
+    still_view_target,
+    with_temperature,
+)
 from dbb_capture.dynamic.model import Rssm
 from dbb_capture.dynamic.rgba import premultiplied
 from dbb_capture.dynamic.stepper import Stepper, script_stepper

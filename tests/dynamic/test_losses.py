@@ -9,10 +9,19 @@ import pytest
 import torch
 
 from dbb_capture.dynamic.config import LOSS_SCALES
-from dbb_capture.dynamic.losses import (OPEN_LOOP_FROM, energy_match, keypoint_error, latent_loss, loss_terms,
-                                        motion_weights, sequence_loss, sharpness_match, weighted,
-                                        with_predicted_change)
-from dbb_capture.dynamic.model import States, Rssm
+from dbb_capture.dynamic.losses import (
+    OPEN_LOOP_FROM,
+    energy_match,
+    keypoint_error,
+    latent_loss,
+    loss_terms,
+    motion_weights,
+    sequence_loss,
+    sharpness_match,
+    weighted,
+    with_predicted_change,
+)
+from dbb_capture.dynamic.model import Rssm, States
 from dbb_capture.dynamic.rgba import premultiply
 
 from .conftest import SMALL, batch_of, scaled

@@ -11,8 +11,15 @@ from torch.nn import functional as F
 
 from dbb_capture.core.metrics import psnr
 from dbb_capture.dynamic.model import Rssm
-from dbb_capture.dynamic.networks import (OscCell, PhaseUp, SpatialSoftmax, accumulated_warp, fast_decoder,
-                                          identity_grid, keypoint_maps)
+from dbb_capture.dynamic.networks import (
+    OscCell,
+    PhaseUp,
+    SpatialSoftmax,
+    accumulated_warp,
+    fast_decoder,
+    identity_grid,
+    keypoint_maps,
+)
 from dbb_capture.dynamic.rgba import premultiply
 
 from .conftest import SMALL, scaled

@@ -7,7 +7,13 @@ import json
 import pytest
 
 from dbb_capture.core.errors import DbbError
-from dbb_capture.dynamic.record import RUN_FORMAT, RUN_VERSION, RunRecord, StepperRecord, TrainingRecord
+from dbb_capture.dynamic.record import (
+    RUN_FORMAT,
+    RUN_VERSION,
+    RunRecord,
+    StepperRecord,
+    TrainingRecord,
+)
 
 from .conftest import scaled
 

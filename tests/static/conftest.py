@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import pytest
 import torch
+from conftest import synthetic_object_frames
 
 from dbb_capture.static.rays import build_ray_bank
 from dbb_capture.static.train import Budget, TrainState, new_field, train
 
-from .synthetic import TINY, synthetic_object_frames
+from .synthetic import TINY
 
 
 @pytest.fixture(scope="session")

@@ -6,6 +6,7 @@ from dataclasses import replace
 
 import numpy as np
 import torch
+from conftest import synthetic_object_frames
 
 from dbb_capture.static.rays import (
     build_ray_bank,
@@ -14,7 +15,7 @@ from dbb_capture.static.rays import (
     robust_weights,
 )
 
-from .synthetic import BOARD, TINY, crops_with_room, synthetic_object_frames
+from .synthetic import BOARD, TINY, crops_with_room
 
 
 def test_bank_keeps_the_rays_that_see_the_sphere_and_the_observed_pixels(tmp_path):

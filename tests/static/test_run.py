@@ -8,14 +8,13 @@ import json
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from conftest import synthetic_object_frames
 from dbb_capture.cli.train import main
 
 from dbb_capture.core.errors import DbbError
 from dbb_capture.datasets.transforms import write_transforms
 from dbb_capture.static.field import FieldConfig
 from dbb_capture.static.run import RUN_VERSION, RunRecord, for_tree_depth, load_run
-
-from .synthetic import synthetic_object_frames
 
 
 @pytest.fixture(scope="module")

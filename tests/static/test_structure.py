@@ -5,13 +5,14 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+from conftest import synthetic_object_frames
 
 from dbb_capture.datasets.records import ObjectVolume
 from dbb_capture.static.field import FieldConfig, VoxelField
 from dbb_capture.static.rays import build_ray_bank, carve_mask
 from dbb_capture.static.structure import carved, pruned, upsampled
 
-from .synthetic import TINY, synthetic_object_frames
+from .synthetic import TINY
 
 
 def _blob(res: int = 16) -> VoxelField:

@@ -9,6 +9,7 @@ import numba
 import numpy as np
 import pytest
 import torch
+from conftest import synthetic_object_frames
 
 from dbb_capture.core.errors import DbbError
 from dbb_capture.core.metrics import psnr_from_mse
@@ -24,7 +25,7 @@ from dbb_capture.static.train import (
     train,
 )
 
-from .synthetic import TINY, band2, crops_with_room, synthetic_object_frames
+from .synthetic import TINY, band2, crops_with_room
 
 
 def _view_psnr(field, frame, bg):

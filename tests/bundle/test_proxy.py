@@ -1,4 +1,4 @@
-"""Proxy meshes: bundle space, closed decimated meshes from voxels and density, visual hull, glTF nodes."""
+"""Proxy meshes: bundle space, closed meshes within the budget, collision nodes in the glb."""
 
 from __future__ import annotations
 
