@@ -11,7 +11,7 @@ from dbb_capture.core.progress import console
 from .common import DbbGroup, overwrite_option
 
 
-@click.group(cls=DbbGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(cls=DbbGroup, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
 @click.version_option(package_name="dbb-capture")
 def main() -> None:
     """Capture stage: make synthetic captures, calibrate cameras, preprocess footage."""
@@ -162,43 +162,41 @@ def calibrate(input_path: Path, board_path: Path | None, output: Path, fps: floa
 @click.option("--board", "board_path", type=click.Path(path_type=Path), default=None,
               help="board.json (default: CAPTURE/board.json).")
 @click.option("--camera", "camera_path", type=click.Path(path_type=Path), default=None,
-              help="camera.json (default: CAPTURE/camera.json, else calibrate from the footage).")
+              help="camera.json (default: CAPTURE/camera.json, else calibrated).")
 @click.option("--footage", type=click.Path(path_type=Path), default=None,
-              help="Video file, frames/RAW folder or .r3d (default: found in CAPTURE).")
+              help="Video, frames/RAW folder or .r3d (default: in CAPTURE).")
 @click.option("--object", "object_path", type=click.Path(path_type=Path), default=None,
               help="object.json (default: CAPTURE/object.json).")
 @click.option("--background", type=click.Path(path_type=Path), default=None,
-              help="Clean plate video or folder (default: CAPTURE/background.mp4 or background/).")
+              help="Clean plate (default: CAPTURE/background.mp4 or background/).")
 @click.option("--fps", type=click.FloatRange(min=0.01), default=None,
               help="Sample the footage at this rate (default: every frame).")
-@click.option("--blur-ratio", type=click.FloatRange(0, 1), default=0.4, show_default=True,
-              help="Drop frames sharper than less than this fraction of their neighbours' median (0: keep all).")
+@click.option("--blur-ratio", type=click.FloatRange(0, 1), default=0.4, show_default=True, metavar="R",
+              help="Drop frames less sharp than this share of their neighbours' (0: keep all).")
 @click.option("--refine/--no-refine", default=False, show_default=True,
-              help="Jointly refine intrinsics and all poses (bundle adjustment over board corners).")
+              help="Refine intrinsics and poses jointly (bundle adjustment).")
 @click.option("--crop-size", type=int, default=64, show_default=True,
-              help="Side of the square RGBA crops in pixels (use 128-256 for static objects).")
+              help="Crop side in pixels (128-256 for static objects).")
 @click.option("--crop-fill", type=float, default=0.9, show_default=True,
-              help="Fraction of the crop side the object's bounding sphere spans.")
+              help="Share of the crop side the object's sphere spans.")
 @click.option("--test-fraction", type=float, default=0.2, show_default=True,
-              help="The last fraction of the capture's duration becomes the test split.")
+              help="The last share of the capture's time held out as test.")
 @click.option("--sequence-length", type=int, default=11, show_default=True,
-              help="Frames per RSSM training window (1 context + N-1 predicted).")
-@click.option("--background-minutes", type=click.FloatRange(min=0.05), default=2.0, show_default=True,
-              help="Training budget of the background field.")
-@click.option("--background-steps", type=click.IntRange(min=1), default=None,
-              help="Train the background field for this many steps instead of a time budget (reproducible runs).")
+              help="Frames per RSSM window (1 context + N-1 predicted).")
+@click.option("--background-minutes", type=click.FloatRange(min=0.05), default=2.0, show_default=True, metavar="M",
+              help="Training budget of the room field.")
+@click.option("--background-steps", type=click.IntRange(min=1), default=None, metavar="N",
+              help="Steps instead of minutes (reproducible).")
 @click.option("--clean-plate/--no-clean-plate", default=True, show_default=True,
-              help="Learn the room from the clean plate when there is one (else from the object video).")
+              help="Learn the room from the clean plate.")
 @click.option("--video-room/--no-video-room", default=True, show_default=True,
-              help="With a clean plate: also learn the room from the object video's rays that pass the "
-                   "object's sphere (the room seen from viewpoints the plate may have missed).")
+              help="With a plate: also from the video's rays past the object.")
 @click.option("--crop-window", type=str, default=None, metavar="X,Y,SIZE",
-              help="Fixed camera without a board: crop this square window (pixels; top-left corner and "
-                   "side) from every frame, background from the temporal median, one constant viewpoint.")
+              help="Fixed camera, no board: crop this window (top-left, side; pixels).")
 @click.option("--matte/--no-matte", "fixed_matte", default=True, show_default=True,
-              help="With --crop-window: matte the crops against the background (off: opaque crops).")
+              help="With --crop-window: matte the crops (off: opaque).")
 @click.option("--stop-after", type=str, default=None,
-              help="Stop after this stage (poses, background, crops) to check its output first.")
+              help="Stop after this stage: poses, background or crops.")
 @click.option("--workers", type=click.IntRange(1, 64), default=None,
               help="Processes decoding and detecting (default: up to 2).")
 @overwrite_option
@@ -208,11 +206,10 @@ def preprocess(capture: Path, output: Path, board_path: Path | None, camera_path
                test_fraction: float, sequence_length: int, background_minutes: float, background_steps: int | None,
                clean_plate: bool, video_room: bool,
                crop_window: str | None, fixed_matte: bool, stop_after: str | None, workers: int | None, overwrite: bool) -> None:
-    """Turn CAPTURE into a dataset in OUTPUT: poses, background field, mattes and RGBA crops.
+    """Turn CAPTURE into a dataset: poses, room field, mattes and RGBA crops.
 
-    Writes images/ (undistorted frames), transforms.json (with masks/), camera.json,
-    colmap/sparse/0, poses/ (report.json, camera_path.png), background/ (field.pt,
-    report.json), crops/ and crops.json, dataset.json and contact_sheet.png.
+    Writes images/, transforms.json, masks/, camera.json, colmap/, poses/, background/,
+    crops/, crops.json, dataset.json and contact_sheet.png (docs/commands/preprocess.md).
     """
     from dataclasses import replace
 

@@ -9,7 +9,7 @@ import click
 from .common import DbbGroup, overwrite_option
 
 
-@click.group(cls=DbbGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(cls=DbbGroup, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
 @click.version_option(package_name="dbb-capture")
 def main() -> None:
     """Export stage: bundles with a proxy mesh, and renders from them."""

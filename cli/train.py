@@ -12,7 +12,7 @@ from dbb_capture.dynamic.config import preset_names
 from .common import DbbGroup
 
 
-@click.group(cls=DbbGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(cls=DbbGroup, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
 @click.version_option(package_name="dbb-capture")
 def main() -> None:
     """Training stage: static objects (PlenOctree) and dynamic objects (RSSM)."""
