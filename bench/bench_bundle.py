@@ -1,4 +1,4 @@
-"""Benchmarks for issue 7 (bundles): proxy mesh against the true shape, renders from a bundle
+"""Bundle benchmarks: proxy mesh against the true shape, renders from a bundle
 against the training run's renders, verify against a flipped byte. Figures go to docs/results.md.
 
     python bench/bench_bundle.py static RUN OUT [--capture CAPTURE | --seed 0]

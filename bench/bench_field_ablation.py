@@ -27,7 +27,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("settings", help="JSON object of FieldConfig fields to change")
     ap.add_argument("--steps", type=int, default=800)
     ap.add_argument("--res-max", type=int, default=128)
-    ap.add_argument("--work", type=Path, default=Path("/tmp/dbb-bench-ablation"))
+    ap.add_argument("--work", type=Path, default=Path("out/bench/ablation"))
     a = ap.parse_args(argv)
     torch.set_num_threads(1)
     kw = json.loads(a.settings)

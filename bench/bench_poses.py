@@ -12,15 +12,15 @@ included, three ways: plain full-resolution ``detectBoard`` in one process; the 
 (reduced image, tracked region, full-resolution corner refinement) in one process; the
 fast path over 2 spawned processes. Prints Markdown rows for docs/results.md.
 
-    flock /tmp/dbb-bench.lock .venv/bin/python bench/bench_poses.py accuracy --work /tmp/dbb-bench-poses
-    flock /tmp/dbb-bench.lock .venv/bin/python bench/bench_poses.py speed --work /tmp/dbb-bench-poses
-    flock -s /tmp/dbb-bench.lock .venv/bin/python bench/bench_poses.py calibration --work /tmp/dbb-bench-poses
+    .venv/bin/python bench/bench_poses.py accuracy --work out/bench/poses
+    .venv/bin/python bench/bench_poses.py speed --work out/bench/poses
+    .venv/bin/python bench/bench_poses.py calibration --work out/bench/poses
     # further captures with the same settings, other seeds:
-    flock -s /tmp/dbb-bench.lock .venv/bin/python bench/bench_poses.py accuracy --work /tmp/dbb-bench-poses \
+    .venv/bin/python bench/bench_poses.py accuracy --work out/bench/poses \
         --cases 4,4,4,0,1 --seeds 60,61,62,63,64
-    flock -s /tmp/dbb-bench.lock .venv/bin/python bench/bench_poses.py accuracy --work /tmp/dbb-bench-poses \
+    .venv/bin/python bench/bench_poses.py accuracy --work out/bench/poses \
         --cases 2,3 --seeds 65,66
-    flock -s /tmp/dbb-bench.lock .venv/bin/python bench/bench_poses.py accuracy --work /tmp/dbb-bench-poses-10s \
+    .venv/bin/python bench/bench_poses.py accuracy --work out/bench/poses-10s \
         --seconds 10 --cases 4,0 --seeds 40,41
 """
 
@@ -244,7 +244,7 @@ def calibration(work: Path) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("what", choices=["accuracy", "speed", "calibration"])
-    ap.add_argument("--work", type=Path, default=Path("/tmp/dbb-bench-poses"),
+    ap.add_argument("--work", type=Path, default=Path("out/bench/poses"),
                     help="Folder for the rendered captures (reused when present).")
     ap.add_argument("--seconds", type=float, default=4.8, help="Length of each synthetic capture.")
     ap.add_argument("--fps", type=float, default=10.0)

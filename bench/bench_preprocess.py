@@ -31,11 +31,11 @@ there without the object) and the matte of the real footage against that perfect
 footage costs; the rest of a ``quality`` figure with a clean plate is the background field's).
 The crops are cached in ``--work`` (``NAME-budget.npz``).
 
-    flock /tmp/dbb-bench.lock .venv/bin/python bench/bench_preprocess.py quality --work /tmp/dbb-bench-pre
-    flock -s /tmp/dbb-bench.lock .venv/bin/python bench/bench_preprocess.py budget --work /tmp/b --captures sample_data/dynamic
-    flock -s /tmp/dbb-bench.lock .venv/bin/python bench/bench_preprocess.py quality --work /tmp/dbb-bench-pre --rematte
-    flock -s /tmp/dbb-bench.lock .venv/bin/python bench/bench_preprocess.py quality --work /tmp/q --steps 1000
-    flock /tmp/dbb-bench.lock .venv/bin/python bench/bench_preprocess.py speed --work /tmp/dbb-bench-pre
+    .venv/bin/python bench/bench_preprocess.py quality --work out/bench/pre
+    .venv/bin/python bench/bench_preprocess.py budget --work out/bench/budget --captures sample_data/dynamic
+    .venv/bin/python bench/bench_preprocess.py quality --work out/bench/pre --rematte
+    .venv/bin/python bench/bench_preprocess.py quality --work out/bench/quality --steps 1000
+    .venv/bin/python bench/bench_preprocess.py speed --work out/bench/pre
 """
 
 from __future__ import annotations
@@ -422,7 +422,7 @@ def speed(work: Path, minutes: float) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("what", choices=["quality", "speed", "budget"])
-    ap.add_argument("--work", type=Path, default=Path("/tmp/dbb-bench-pre"))
+    ap.add_argument("--work", type=Path, default=Path("out/bench/pre"))
     ap.add_argument("--minutes", type=float, default=2.0, help="background field training budget")
     ap.add_argument("--steps", type=int, default=None,
                     help="quality: train the background field for this many steps instead (a run whose result "

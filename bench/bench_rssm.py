@@ -1,4 +1,4 @@
-"""RSSM benchmarks (issue 6): run-time stepping speed, and quality on a synthetic dynamic capture.
+"""RSSM benchmarks: run-time stepping speed, and quality on a synthetic dynamic capture.
 
     speed:   one step + decode, batch 1, TorchScript stepper, at 64x64 and 256x256
              .venv/bin/python bench/bench_rssm.py speed --threads 2
@@ -23,7 +23,7 @@
     blurred-copy: what copy-first blurred more at each step (a hedge that never moves) scores
              .venv/bin/python bench/bench_rssm.py blurred-copy dyn_ds --sigma 0.5 --sigma 1
 
-Take timing figures under ``flock /tmp/dbb-bench.lock`` on a shared machine.
+Take timing figures with the machine to itself.
 """
 
 from __future__ import annotations

@@ -1,0 +1,1 @@
+"""Tests of dbb_capture.core."""
