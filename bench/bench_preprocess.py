@@ -55,6 +55,7 @@ import numpy as np
 from dbb_capture.crops.camera import crop_maps, cut_crop
 from dbb_capture.geometry.cameras import Intrinsics, project_points
 from dbb_capture.geometry.conventions import opencv_from_opengl
+from dbb_capture.geometry.conventions import centre_from_corner_px
 from dbb_capture.geometry.rays import camera_rays
 
 REPO = Path(__file__).resolve().parents[1]
@@ -64,7 +65,8 @@ def _cam_from_frame(fr: dict):
     from dbb_capture.crops.camera import CropCamera
     from dbb_capture.geometry.viewpoint import Viewpoint
 
-    intr = Intrinsics(fr["w"], fr["h"], fr["fl_x"], fr["fl_y"], fr["cx"], fr["cy"])
+    # The file's principal point has the corner origin (the contract's); Intrinsics are OpenCV's.
+    intr = Intrinsics(fr["w"], fr["h"], fr["fl_x"], fr["fl_y"], centre_from_corner_px(fr["cx"]), centre_from_corner_px(fr["cy"]))
     vp = Viewpoint(**fr["viewpoint"])
     return CropCamera(intr, opencv_from_opengl(np.array(fr["transform_matrix"])), vp, 0.0)
 

@@ -98,8 +98,7 @@ def still_truth(dataset: Path, capture: Path, steps: int = 150, samples: int = 2
     the truth is the capture's ground-truth object rendered through that frame's crop camera
     (preprocess poses are in the board frame, as the synthetic world) for ``steps`` more frames.
     """
-    from dbb_capture.geometry.cameras import Intrinsics
-    from dbb_capture.geometry.conventions import opencv_from_opengl
+    from dbb_capture.datasets.transforms import load_dataset
     from dbb_capture.synth.capture import load_ground_truth
     from dbb_capture.synth.render import render_object_rgba
 
@@ -107,8 +106,8 @@ def still_truth(dataset: Path, capture: Path, steps: int = 150, samples: int = 2
     frames = doc["frames"]
     k = next((i for i, f in enumerate(frames) if f["split"] == "test"), 0)
     f = frames[k]
-    intr = Intrinsics(f["w"], f["h"], f["fl_x"], f["fl_y"], f["cx"], f["cy"], (0.0, 0.0, 0.0, 0.0, 0.0))
-    c2w = opencv_from_opengl(np.array(f["transform_matrix"], float))
+    cam = load_dataset(dataset).frames[k]          # the crop camera in the toolkit's conventions
+    intr, c2w = cam.intr, cam.c2w
     fps = 1.0 / float(np.median(np.diff([fr["time"] for fr in frames])))
     _, _, obj = load_ground_truth(capture)
     truth = np.stack([render_object_rgba(obj, intr, c2w, f["time"] + j / fps, samples) for j in range(1, steps + 1)])

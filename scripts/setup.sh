@@ -43,5 +43,18 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ] || ! .venv/bin/python -c "import
     fi
   fi
   pipq install -q -e ".[test]"
+  # svox (PlenOctrees' own library) for the interoperability tests; its CUDA extension is optional,
+  # and without build isolation pip builds the pure-Python package against the torch above.
+  pipq install -q --no-build-isolation "svox==0.2.32"
   echo "$want" > "$stamp"
+fi
+
+# JavaScript tools the tests use (the Khronos glTF validator), from package-lock.json.
+if command -v npm >/dev/null 2>&1; then
+  if [ ! -f node_modules/.package-lock.json ] || [ package-lock.json -nt node_modules/.package-lock.json ]; then
+    echo "setup: installing the JavaScript tools (npm ci)" >&2
+    npm ci --no-audit --no-fund --loglevel=error >/dev/null
+  fi
+else
+  echo "setup: note: npm not found; the glTF validator tests will be skipped" >&2
 fi

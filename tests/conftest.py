@@ -111,3 +111,18 @@ def synthetic_object_frames(folder, n=24, size=32, seed=0) -> tuple[list[Frame],
         cv2.imwrite(str(p), cv2.cvtColor(render_object_rgba(model, intr, c2w, 0.0, samples=2), cv2.COLOR_RGBA2BGRA))
         frames.append(Frame(f"{i:03d}", p, c2w, intr, "test" if i % 8 == 3 else "train"))
     return frames, ObjectVolume(tuple(float(v) for v in c), float(r) * 1.05)
+
+
+def gltf_reports(*paths: Path) -> list[dict]:
+    """The Khronos glTF validator's report of each file (``scripts/validate_gltf.mjs``, npm's
+    ``gltf-validator`` installed by the set-up); skips the test with a reason where there is none."""
+    import json
+    import shutil
+    import subprocess
+
+    if shutil.which("node") is None or not (REPO / "node_modules" / "gltf-validator").is_dir():
+        pytest.skip("the glTF validator is not installed (needs node and `npm ci`, which scripts/setup.sh runs)")
+    res = subprocess.run(["node", str(REPO / "scripts" / "validate_gltf.mjs"), *map(str, paths)],
+                         capture_output=True, text=True, timeout=120, cwd=REPO)
+    assert res.returncode == 0, res.stderr
+    return [json.loads(line) for line in res.stdout.splitlines()]

@@ -290,7 +290,33 @@ def write_glb(path: Path, proxy: ProxyMesh, name: str = "proxy") -> None:
                        geom_name=f"{name}-colonly")
     scene.add_geometry(_trimesh(proxy.hull_vertices, proxy.hull_faces), node_name=f"{name}-convcolonly",
                        geom_name=f"{name}-convcolonly")
-    write_bytes_atomic(Path(path), scene.export(file_type="glb"))
+    write_bytes_atomic(Path(path), with_buffer_targets(scene.export(file_type="glb")))
+
+
+def with_buffer_targets(glb: bytes) -> bytes:
+    """A binary glTF with each buffer view's ``target`` set: ELEMENT_ARRAY_BUFFER for the ones
+    meshes read indices from, ARRAY_BUFFER for vertex attributes (what trimesh leaves out, and
+    what the Khronos validator hints at: engines use it to choose GPU buffers)."""
+    import json
+    import struct
+
+    magic, version, _ = struct.unpack_from("<4sII", glb, 0)
+    n, kind = struct.unpack_from("<I4s", glb, 12)
+    if magic != b"glTF" or kind != b"JSON":
+        raise ValueError("not a binary glTF with a JSON chunk first")
+    doc = json.loads(glb[20:20 + n])
+    rest = glb[20 + n:]
+    views = doc.get("bufferViews", [])
+    for mesh in doc.get("meshes", []):
+        for prim in mesh.get("primitives", []):
+            if "indices" in prim:
+                views[doc["accessors"][prim["indices"]]["bufferView"]]["target"] = 34963
+            for acc in prim.get("attributes", {}).values():
+                views[doc["accessors"][acc]["bufferView"]]["target"] = 34962
+    text = json.dumps(doc, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 4)                    # chunks are 4-byte aligned, JSON padded with spaces
+    out = struct.pack("<I4s", len(text), b"JSON") + text + rest
+    return struct.pack("<4sII", b"glTF", version, 12 + len(out)) + out
 
 
 def read_glb(path: Path) -> dict:

@@ -8,10 +8,13 @@ Reads the three dataset flavours training accepts:
   ``file_path`` often without extension);
 - the project's ``crops.json`` (per-frame crop intrinsics, RGBA crops, ``split``, ``viewpoint``).
 
-and writes ``transforms.json`` and ``crops.json`` (:func:`write_transforms`). Poses in the files
-are OpenGL camera-to-world, converted by :mod:`..geometry.conventions`. Principal points in the
-files are read and written in the toolkit's pixel convention (centre of the top-left pixel at
-(0, 0)); for Blender files the principal point is the image centre, ``((w - 1) / 2, (h - 1) / 2)``.
+and writes ``transforms.json`` and ``crops.json`` (:func:`write_transforms`). Files hold the
+conventions of nerfstudio and instant-ngp, converted here by :mod:`..geometry.conventions`:
+OpenGL camera-to-world poses, and principal points with the pixel origin at the image's corner
+(``cx = w / 2`` for a centred camera); every :class:`Frame` holds OpenCV's (camera-to-world,
+pixel centres at integers). A Blender file's principal point is the image centre. Written files
+say ``applied_transform`` (the identity: poses are in the board frame as they are), so nerfstudio
+does not insert an axis swap of its own.
 """
 
 from __future__ import annotations
@@ -25,11 +28,18 @@ import numpy as np
 from ..core.errors import InputError
 from ..core.outputs import read_json, write_json
 from ..geometry.cameras import Intrinsics
-from ..geometry.conventions import opencv_from_opengl, opengl_from_opencv
+from ..geometry.conventions import (
+    centre_from_corner_px,
+    corner_from_centre_px,
+    opencv_from_opengl,
+    opengl_from_opencv,
+)
 from ..geometry.viewpoint import Viewpoint
 from .records import Frame, ObjectVolume, PosedDataset
 
 DATASET_FILES = ("crops.json", "transforms.json", "transforms_train.json")
+DATASET_VERSION = 2      # crops.json: 2 = principal points with the corner origin (the contract's)
+APPLIED_TRANSFORM = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]]
 
 
 _IMAGE_EXTS = ("", ".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
@@ -67,8 +77,10 @@ def _intrinsics(d: dict, fallback: Intrinsics | None, size: tuple[int, int] | No
         raise InputError(f"{where}: no focal length (fl_x/fl_y or camera_angle_x)")
     fx = float(fx if fx is not None else fy)
     fy = float(fy if fy is not None else fx)
-    cx = float(d.get("cx", base.get("cx", (w - 1) / 2)))
-    cy = float(d.get("cy", base.get("cy", (h - 1) / 2)))
+    # The file's principal point has the corner origin; a fallback (an Intrinsics) is OpenCV's
+    # already, and without either the image centre is (w - 1) / 2 in OpenCV's pixels.
+    cx = centre_from_corner_px(d["cx"]) if "cx" in d else float(base.get("cx", (w - 1) / 2))
+    cy = centre_from_corner_px(d["cy"]) if "cy" in d else float(base.get("cy", (h - 1) / 2))
     model = d.get("camera_model", "OPENCV")
     if model not in ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
         raise InputError(f"{where}: camera_model {model!r} is not supported (use OPENCV)")
@@ -114,6 +126,9 @@ def load_dataset(path: Path) -> PosedDataset:
     if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
         raise InputError(f"{src}: no frames")
     root = src.parent
+    if "crop_size" in meta and meta.get("dbb_dataset_version") != DATASET_VERSION:
+        raise InputError(f"{src} was written by an older version of dbb-capture preprocess "
+                         "(another principal point convention): preprocess the capture again")
     kind = "crops" if src.name == "crops.json" else (
         "blender" if "fl_x" not in meta and "camera_angle_x" in meta else "transforms")
     top = None
@@ -233,8 +248,9 @@ def _read_volume(meta: dict, root: Path) -> ObjectVolume | None:
 def intrinsics_fields(intr: Intrinsics) -> dict:
     """The intrinsics keys of a nerfstudio ``transforms.json`` (OPENCV camera model) for ``intr``."""
     k1, k2, p1, p2, k3 = (float(v) for v in intr.dist_array)
-    return {"camera_model": "OPENCV", "fl_x": intr.fx, "fl_y": intr.fy, "cx": intr.cx, "cy": intr.cy,
-            "w": intr.width, "h": intr.height, "k1": k1, "k2": k2, "k3": k3, "p1": p1, "p2": p2}
+    return {"camera_model": "OPENCV", "fl_x": intr.fx, "fl_y": intr.fy, "cx": corner_from_centre_px(intr.cx),
+            "cy": corner_from_centre_px(intr.cy), "w": intr.width, "h": intr.height,
+            "k1": k1, "k2": k2, "k3": k3, "p1": p1, "p2": p2}
 
 
 def relative_path(path: Path | None, root: Path) -> str | None:
@@ -255,7 +271,8 @@ def frame_json(f: Frame, root: Path, own_camera: bool, with_split: bool) -> dict
                "transform_matrix": opengl_from_opencv(f.c2w).round(9).tolist()}
     if own_camera:
         i = f.intr
-        d.update({"fl_x": i.fx, "fl_y": i.fy, "cx": i.cx, "cy": i.cy, "w": i.width, "h": i.height})
+        d.update({"fl_x": i.fx, "fl_y": i.fy, "cx": corner_from_centre_px(i.cx), "cy": corner_from_centre_px(i.cy),
+                  "w": i.width, "h": i.height})
     if f.source_frame is not None:
         d["source_frame"] = f.source_frame
     if f.time is not None:
@@ -290,6 +307,7 @@ def write_transforms(path: Path, frames: Sequence[Frame], volume: ObjectVolume |
         if any((f.intr.width, f.intr.height) != (frames[0].intr.width, frames[0].intr.height) for f in frames):
             top = {k: v for k, v in top.items() if k not in ("w", "h")}
     with_split = any(f.split != "train" for f in frames)
+    top["applied_transform"] = APPLIED_TRANSFORM
     if volume is not None:
         top["object"] = {"center": [float(c) for c in volume.center], "radius": float(volume.radius)}
     write_json(path, {**top, **(extra or {}),
@@ -304,6 +322,7 @@ def write_crops(path: Path, frames: Sequence[Frame], center: np.ndarray, radius:
     fill, and the sequence windows ``sequences`` ([(start frame, split)] of ``sequence_length``
     frames: 1 context + N predicted)."""
     write_transforms(path, frames, extra={
+        "dbb_dataset_version": DATASET_VERSION,
         "object": {"center": [round(float(v), 6) for v in center], "radius": round(float(radius), 6)},
         "up": [float(v) for v in up], "crop_size": crop_size, "crop_fill": crop_fill,
         "sequence_length": sequence_length, "sequences": [{"start": s, "split": sp} for s, sp in sequences],

@@ -1,6 +1,11 @@
-"""Writers of the pose stage's own files: a COLMAP sparse model (pycolmap) and the pose report
-(JSON and a PNG of the camera path around the board). ``transforms.json`` is written by
+"""Writers of the pose stage's own files: the board's corners as a sparse point cloud (a PLY, and
+the points of a COLMAP sparse model written with pycolmap), and the pose report (JSON and a PNG
+of the camera path around the board). ``transforms.json`` is written by
 :func:`..datasets.transforms.write_transforms`.
+
+The point cloud is true by construction: the ChArUco corners lie exactly where the board says
+in the board frame, and every posed frame observed the ones its pose was solved from. Gaussian
+splatting and COLMAP readers (nerfstudio's splatfacto, its ``ColmapDataParser``) start from it.
 
 Poses come in as OpenCV camera-to-world (board frame, metres); COLMAP's pixel convention
 (top-left pixel centre at (0.5, 0.5)) comes from :mod:`..geometry.conventions`.
@@ -9,6 +14,7 @@ Poses come in as OpenCV camera-to-world (board frame, metres); COLMAP's pixel co
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -17,23 +23,101 @@ from ..capture.board import BoardSpec
 from ..datasets.records import Frame
 from ..datasets.transforms import relative_path
 from ..geometry.cameras import Intrinsics
-from ..geometry.conventions import colmap_from_opencv_px
+from ..geometry.conventions import corner_from_centre_px
 from ..geometry.transforms import invert_rigid
 from .run import PoseRun
 
 
-def write_colmap(folder: Path, intr: Intrinsics, frames: Sequence[Frame], root: Path) -> None:
-    """A COLMAP sparse model (cameras, rigs, frames, images; no points) in ``folder``, image names
-    relative to the dataset folder ``root``.
+@dataclass(frozen=True)
+class Sighting:
+    """The board corners one posed frame saw: ChArUco ``ids`` (N,), their pixels ``xy`` (N, 2) in
+    the undistorted frame (OpenCV's pixel centres) and the colours there ``rgb`` (N, 3) uint8."""
 
-    Camera model OPENCV (PINHOLE when undistorted); principal point shifted by +0.5 px.
+    ids: np.ndarray
+    xy: np.ndarray
+    rgb: np.ndarray
+
+
+@dataclass(frozen=True)
+class BoardPoints:
+    """The board's corners the posed frames saw: ``ids`` (P,), ``xyz`` (P, 3) board frame (metres),
+    ``rgb`` (P, 3) uint8 (the mean colour seen), and per point its ``track``: (frame position, xy
+    (2,) undistorted OpenCV pixels) in every frame that saw it."""
+
+    ids: np.ndarray
+    xyz: np.ndarray
+    rgb: np.ndarray
+    tracks: list[list[tuple[int, np.ndarray]]]
+
+
+def corner_pixels(run: PoseRun, intr: Intrinsics) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """Per posed frame index: the ChArUco ids its pose used (the inliers) and where they are in the
+    undistorted frame, (N,) and (N, 2) OpenCV pixels; ``intr`` is the footage's camera (distortion
+    included), undistorted to the same K."""
+    import cv2
+
+    dets = {d.index: d for d in run.detections}
+    out = {}
+    for p in run.posed:
+        d = dets.get(p.index)
+        if d is None or d.n_corners == 0:
+            continue
+        keep = np.ones(d.n_corners, bool) if p.inliers is None else np.asarray(p.inliers, bool)
+        pts = np.asarray(d.corners, np.float64)[keep].reshape(-1, 1, 2)
+        xy = cv2.undistortPoints(pts, intr.K, intr.dist_array, None, intr.K).reshape(-1, 2) if intr.distorted \
+            else pts.reshape(-1, 2)
+        out[p.index] = (np.asarray(d.ids)[keep], xy)
+    return out
+
+
+def sample_colours(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Colours (N, 3) uint8 of RGB ``image`` (H, W, 3) at pixels ``xy`` (N, 2) (nearest pixel)."""
+    h, w = image.shape[:2]
+    u = np.clip(np.round(xy[:, 0]).astype(int), 0, w - 1)
+    v = np.clip(np.round(xy[:, 1]).astype(int), 0, h - 1)
+    return image[v, u, :3].astype(np.uint8)
+
+
+def board_points(board: BoardSpec, sightings: Sequence[Sighting | None]) -> BoardPoints:
+    """The corners seen in ``sightings`` (one per frame, in frame order; None: a frame that saw none)."""
+    corners = board.chessboard_corners()
+    tracks: dict[int, list[tuple[int, np.ndarray]]] = {}
+    colours: dict[int, list[np.ndarray]] = {}
+    for k, s in enumerate(sightings):
+        if s is None:
+            continue
+        for cid, xy, rgb in zip(s.ids.tolist(), s.xy, s.rgb):
+            tracks.setdefault(int(cid), []).append((k, xy))
+            colours.setdefault(int(cid), []).append(rgb)
+    ids = np.array(sorted(tracks), np.int64)
+    rgb = np.array([np.round(np.mean(colours[i], 0)) for i in ids], np.uint8).reshape(-1, 3)
+    return BoardPoints(ids, corners[ids].reshape(-1, 3), rgb, [tracks[i] for i in ids])
+
+
+def write_ply(path: Path, points: BoardPoints) -> None:
+    """An ASCII PLY of the points: ``x y z`` (metres, board frame) and ``red green blue`` (uchar)."""
+    from ..core.outputs import write_bytes_atomic
+
+    head = ["ply", "format ascii 1.0", f"element vertex {len(points.ids)}", "property float x", "property float y",
+            "property float z", "property uchar red", "property uchar green", "property uchar blue", "end_header"]
+    rows = [f"{x:.9g} {y:.9g} {z:.9g} {r} {g} {b}" for (x, y, z), (r, g, b) in zip(points.xyz, points.rgb.tolist())]
+    write_bytes_atomic(Path(path), ("\n".join(head + rows) + "\n").encode())
+
+
+def write_colmap(folder: Path, intr: Intrinsics, frames: Sequence[Frame], images: Path,
+                 points: BoardPoints | None = None) -> None:
+    """A COLMAP sparse model (cameras, rigs, frames, images and, given ``points``, the board's
+    corners with their tracks) in ``folder``; image names relative to the image folder ``images``
+    (COLMAP's image path), so readers that join the two find the files.
+
+    Camera model OPENCV (PINHOLE when undistorted); pixels with COLMAP's corner origin.
     """
     import pycolmap
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     rec = pycolmap.Reconstruction()
-    cx, cy = colmap_from_opencv_px(intr.cx), colmap_from_opencv_px(intr.cy)
+    cx, cy = corner_from_centre_px(intr.cx), corner_from_centre_px(intr.cy)
     if intr.distorted:
         k1, k2, p1, p2, _ = (float(v) for v in intr.dist_array)
         cam = pycolmap.Camera(model="OPENCV", width=intr.width, height=intr.height,
@@ -42,10 +126,24 @@ def write_colmap(folder: Path, intr: Intrinsics, frames: Sequence[Frame], root: 
         cam = pycolmap.Camera(model="PINHOLE", width=intr.width, height=intr.height,
                               params=[intr.fx, intr.fy, cx, cy], camera_id=1)
     rec.add_camera_with_trivial_rig(cam)
-    for i, f in enumerate(frames, start=1):
+    seen: dict[int, list[tuple[int, np.ndarray]]] = {}       # frame position -> (point, xy) in track order
+    for p, track in enumerate(points.tracks if points is not None else []):
+        for k, xy in track:
+            seen.setdefault(k, []).append((p, xy))
+    where: dict[tuple[int, int], int] = {}                    # (point, frame position) -> its Point2D index
+    for k, f in enumerate(frames):
         w2c = invert_rigid(f.c2w)
-        image = pycolmap.Image(name=relative_path(f.image_path, root), camera_id=1, image_id=i)
+        image = pycolmap.Image(name=relative_path(f.image_path, images), camera_id=1, image_id=k + 1)
+        obs = seen.get(k, [])
+        image.points2D = pycolmap.Point2DList(
+            [pycolmap.Point2D(np.array([corner_from_centre_px(x), corner_from_centre_px(y)])) for _, (x, y) in obs])
+        where.update({(p, k): j for j, (p, _) in enumerate(obs)})
         rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(w2c[:3, :4]))
+    if points is not None:
+        for p, (xyz, rgb, track) in enumerate(zip(points.xyz, points.rgb, points.tracks)):
+            rec.add_point3D(np.asarray(xyz, np.float64),
+                            pycolmap.Track([pycolmap.TrackElement(k + 1, where[(p, k)]) for k, _ in track]),
+                            np.asarray(rgb, np.uint8))
     rec.write(str(folder))
 
 

@@ -38,7 +38,7 @@ from ..datasets.transforms import write_crops
 from ..geometry.cameras import Intrinsics
 from .background_stage import BackgroundOutput, ObjectSphere
 from .inputs import StageContext
-from .pose_stage import write_frames
+from .pose_stage import POINT_CLOUD, write_frames
 from .report import dataset_stats, sheet_frame, sheet_tiles
 
 
@@ -190,8 +190,10 @@ def _matte_segment(seg: _MatteSegment, tick: Callable[[int], None] | None = None
         if not oc.touches_border:       # past the border the observed crop is padding, not the room
             write_image(seg.out / f"crops_observed/{fm.name}.png", cv2.cvtColor(oc.observed, cv2.COLOR_RGB2BGR))
             write_image(seg.out / f"crops_background/{fm.name}.png", cv2.cvtColor(oc.predicted, cv2.COLOR_RGB2BGR))
-        write_image(seg.out / f"masks/{fm.name}.png",
-                   alpha_in_frame(oc.rgba[..., 3], oc.cam, seg.frame_intr, seg.c2w[fm.index]))
+        # Full-frame masks are binary at half opacity (nerfstudio samples where a mask is above 0,
+        # so soft edges would count as object); the crops keep the soft alpha.
+        alpha = alpha_in_frame(oc.rgba[..., 3], oc.cam, seg.frame_intr, seg.c2w[fm.index])
+        write_image(seg.out / f"masks/{fm.name}.png", np.where(alpha >= 128, 255, 0).astype(np.uint8))
         row = sheet_tiles(sheet_frame, oc, prev) if sheet_frame is not None else None
         out.append(_CropResult(fm.index, oc.cam, oc.touches_border, float(oc.rgba[..., 3].mean()) / 255.0, row))
         prev = oc.rgba
@@ -305,7 +307,8 @@ def crops_stage(ctx: StageContext, bg: BackgroundOutput) -> CropsOutput:
     windows = sequence_windows(np.array([f.time for f in frames]), splits, cfg.sequence_length)
     write_crops(out / "crops.json", frames, sphere.center, sphere.radius, sphere.up, cfg.crop_size, cfg.crop_fill,
                 cfg.sequence_length, windows,
-                {"note": "crop cameras: OpenGL camera-to-world, ChArUco board frame, metres; straight RGBA crops"})
+                {"ply_file_path": POINT_CLOUD,
+                 "note": "crop cameras: OpenGL camera-to-world, ChArUco board frame, metres; straight RGBA crops"})
     # The full frames get their masks (single channel, black = not the object).
     write_frames(out / "transforms.json", [replace(im, mask_path=out / "masks" / f"{im.name}.png")
                                            for im in poses.images], poses.up)

@@ -12,14 +12,23 @@ import cv2
 import numpy as np
 
 from ..capture.footage import R3dSource
-from ..core.errors import DbbError
+from ..core.images import write_image
 from ..core.outputs import write_json
 from ..core.progress import progress
 from ..datasets.records import Frame
 from ..datasets.transforms import write_transforms
 from ..geometry.cameras import Intrinsics
 from ..geometry.undistort import Undistorter
-from ..poses.export import plot_camera_path, pose_report, write_colmap
+from ..poses.export import (
+    Sighting,
+    board_points,
+    corner_pixels,
+    plot_camera_path,
+    pose_report,
+    sample_colours,
+    write_colmap,
+    write_ply,
+)
 from ..poses.run import PoseRun, estimate_poses
 from .inputs import StageContext
 
@@ -33,6 +42,9 @@ class PosesOutput:
     images: tuple[Frame, ...]        # the undistorted frames (images/) and their poses
     up: tuple[float, float, float]   # the board normal on the cameras' side
     run: PoseRun
+
+
+POINT_CLOUD = "sparse_pc.ply"     # the board's corners (nerfstudio's name for a dataset's point cloud)
 
 
 def poses_stage(ctx: StageContext, _previous: Any = None) -> PosesOutput:
@@ -51,17 +63,19 @@ def poses_stage(ctx: StageContext, _previous: Any = None) -> PosesOutput:
         intr = undistort.target
         (out / "images").mkdir()
         task = prog.add_task("write undistorted frames", total=len(posed), info="")
-        images = []
+        images, sightings = [], []
         by_index = {p.index: p for p in posed}
+        corners = corner_pixels(run, run.intrinsics)
         for f in inp.footage.read(sorted(by_index)):
             p = by_index[f.index]
-            rel = f"images/{f.name}.png"
             img = undistort(f.image)
-            bgr = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
-            if not cv2.imwrite(str(out / rel), bgr, [cv2.IMWRITE_PNG_COMPRESSION, 1]):
-                raise DbbError(f"cannot write {out / rel}")
-            images.append(Frame(f.name, out / rel, p.c2w, intr, time=p.time))
+            write_image(out / "images" / f"{f.name}.png", cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+            images.append(Frame(f.name, out / "images" / f"{f.name}.png", p.c2w, intr, time=p.time))
+            ids, xy = corners.get(f.index, (None, None))
+            sightings.append(None if ids is None else Sighting(ids, xy, sample_colours(img, xy)))
             prog.advance(task)
+    points = board_points(inp.board, sightings)
+    write_ply(out / POINT_CLOUD, points)
     # "Up" is the board normal on the cameras' side, read from the poses, never assumed.
     side = np.sign(np.median([im.c2w[2, 3] for im in images])) or -1.0
     up = (0.0, 0.0, float(side))
@@ -70,7 +84,7 @@ def poses_stage(ctx: StageContext, _previous: Any = None) -> PosesOutput:
     if run.calibration is not None:
         cam["rms"] = round(run.calibration.rms, 4)
     write_json(out / "camera.json", cam)
-    write_colmap(out / "colmap" / "sparse" / "0", intr, images, out)
+    write_colmap(out / "colmap" / "sparse" / "0", intr, images, out / "images", points)
     write_json(out / "poses" / "report.json", pose_report(run, inp.board))
     plot_camera_path(run, inp.board, out / "poses" / "camera_path.png")
     write_json(out / "board.json", inp.board.to_json())
@@ -89,6 +103,7 @@ def poses_stage(ctx: StageContext, _previous: Any = None) -> PosesOutput:
 
 
 def write_frames(path: Path, frames: list[Frame], up: tuple[float, float, float]) -> None:
-    """The full frames' ``transforms.json`` (shared undistorted camera, the scene's up)."""
-    write_transforms(path, frames, extra={"up": list(up), "note": "OpenGL camera-to-world, ChArUco board frame, metres; "
-                                                           "frames undistorted"})
+    """The full frames' ``transforms.json``: the shared undistorted camera, the scene's up and the
+    board's corners as the point cloud (``ply_file_path``, written beside it by the poses stage)."""
+    write_transforms(path, frames, extra={"up": list(up), "ply_file_path": POINT_CLOUD,
+                                          "note": "OpenGL camera-to-world, ChArUco board frame, metres; frames undistorted"})

@@ -7,6 +7,7 @@ import json
 import cv2
 import numpy as np
 import pytest
+from conftest import gltf_reports
 
 from dbb_capture.bundle.manifest import open_bundle
 from dbb_capture.bundle.previews import PREVIEW_PX
@@ -20,6 +21,8 @@ def test_static_bundle_layout_manifest_and_model(static_run, static_bundle):
     folder, _ = static_run
     m = json.loads((static_bundle / "manifest.json").read_text())
     assert m["format"] == "deep-billboard" and m["kind"] == "static" and m["version"] == 1
+    (report,) = gltf_reports(static_bundle / "proxy.glb")
+    assert (report["errors"], report["warnings"], report["infos"], report["hints"]) == (0, 0, 0, 0), report
     assert (static_bundle / "model/plenoctree.npz").read_bytes() == (folder / "run/tree.npz").read_bytes()
     z = np.load(static_bundle / "model/plenoctree.npz")     # the keys svox's N3Tree.load reads
     assert {"data", "child", "parent_depth", "n_internal", "n_free", "invradius3", "offset", "depth_limit",
@@ -69,6 +72,8 @@ def test_dynamic_bundle_verifies_renders_in_order_and_has_a_proxy(dynamic_run, t
     assert m["kind"] == "dynamic" and m["model"]["file"] == "model/stepper.ts"
     assert m["inputs"]["frame_size"] == 32 and len(m["inputs"]["first_view"]) == 3
     assert m["proxy_mesh"]["method"] in ("visual hull", "sphere") and m["proxy_mesh"]["watertight"]
+    (report,) = gltf_reports(b / "proxy.glb")
+    assert (report["errors"], report["warnings"], report["infos"], report["hints"]) == (0, 0, 0, 0), report
     assert m["proxy_mesh"]["method"] == "visual hull", m["proxy_mesh"]["note"]
     col = read_glb(b / "proxy.glb")["proxy-colonly"]
     assert isinstance(col, trimesh.Trimesh) and col.is_watertight

@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from conftest import gltf_reports
 
 from dbb_capture.bundle.proxy import (
     MAX_TRIANGLES,
@@ -89,3 +90,15 @@ def test_glb_has_collision_nodes_and_reads_back_watertight(tmp_path):
     col = meshes["toy-colonly"]
     assert col.is_watertight
     assert np.allclose(col.bounds, [[-0.05] * 3, [0.05] * 3], atol=2e-3)   # centred on the origin
+
+
+def test_glb_passes_the_khronos_validator_without_a_hint(tmp_path):
+    """The Khronos glTF validator finds no error, warning, info or hint in a proxy file (buffer
+    views say whether they hold vertices or indices)."""
+    q, lo, hi = _ellipsoid_grid()
+    sigma = np.where(q > 1.6, 0.0, 60.0 / (1 + np.exp((q - 1) * 12)))     # soft edge, ~60 per metre inside
+    np.savez_compressed(tmp_path / "density_grid.npz", sigma=sigma.astype(np.float16), bbox_min=lo, bbox_max=hi)
+    T = bundle_from_board((lo + hi) / 2, np.array([0, 0, -1.0]))
+    write_glb(tmp_path / "proxy.glb", static_proxy(tmp_path / "density_grid.npz", T), "toy")
+    (report,) = gltf_reports(tmp_path / "proxy.glb")
+    assert (report["errors"], report["warnings"], report["infos"], report["hints"]) == (0, 0, 0, 0), report

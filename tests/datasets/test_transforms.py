@@ -39,7 +39,7 @@ def test_transforms_json_conventions_paths_and_per_frame_intrinsics(tmp_path):
         write_image(tmp_path / "img" / f"{i}.jpg", rgba=False)
         frames.append({"file_path": f"img/{i}.jpg", "transform_matrix": opengl_from_opencv(c2w).tolist()})
     frames[2]["file_path"] = str((tmp_path / "img" / "2.jpg").resolve())       # absolute path
-    frames[3].update({"fl_x": 61.0, "fl_y": 62.0, "cx": 20.0, "cy": 15.0})       # per-frame intrinsics
+    frames[3].update({"fl_x": 61.0, "fl_y": 62.0, "cx": 20.0, "cy": 15.0})       # per-frame, corner origin
     meta = {**intrinsics_fields(INTR), "frames": frames}
     (tmp_path / "transforms.json").write_text(json.dumps(meta))
     ds = load_dataset(tmp_path)
@@ -49,7 +49,7 @@ def test_transforms_json_conventions_paths_and_per_frame_intrinsics(tmp_path):
     assert ds.frames[0].intr == INTR                              # distortion honoured
     assert ds.frames[2].image_path.is_absolute() and ds.frames[2].image_path.exists()
     i3 = ds.frames[3].intr
-    assert (i3.fx, i3.fy, i3.cx, i3.cy, i3.dist) == (61.0, 62.0, 20.0, 15.0, INTR.dist)
+    assert (i3.fx, i3.fy, i3.cx, i3.cy, i3.dist) == (61.0, 62.0, 19.5, 14.5, INTR.dist)    # OpenCV centres inside
 
 
 def test_blender_camera_angle_and_extensionless_paths(tmp_path):
@@ -134,3 +134,22 @@ def test_real_datasets_load():
     # instant-ngp cameras look at the figurine: the estimated centre lies in front of all of them.
     v = estimate_volume(fox.frames)
     assert all((np.asarray(v.center) - f.c2w[:3, 3]) @ f.c2w[:3, 2] > 0 for f in fox.frames)
+
+
+def test_files_put_the_pixel_origin_at_the_corner_and_old_crops_are_refused(tmp_path):
+    """The contract's convention: a centred 64 px crop has cx = 32 in the file (nerfstudio's and
+    instant-ngp's origin), 31.5 inside (OpenCV's pixel centres); a crops.json of the older
+    convention is refused rather than read half a pixel off."""
+    crop = Intrinsics(64, 64, 80.0, 80.0, 31.5, 31.5)
+    (tmp_path / "crops").mkdir()
+    cv2.imwrite(str(tmp_path / "crops" / "0.png"), np.full((64, 64, 4), 200, np.uint8))
+    f = Frame("0", tmp_path / "crops" / "0.png", poses_around(1)[0], crop, time=0.0)
+    write_crops(tmp_path / "crops.json", [f], np.zeros(3), 0.1, np.array([0.0, 0.0, -1.0]), 64, 0.9, 2, [])
+    doc = json.loads((tmp_path / "crops.json").read_text())
+    assert (doc["frames"][0]["cx"], doc["frames"][0]["cy"]) == (32.0, 32.0)
+    assert doc["applied_transform"] == [[1.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.0, 0]]
+    assert load_dataset(tmp_path).frames[0].intr == crop
+    del doc["dbb_dataset_version"]
+    (tmp_path / "crops.json").write_text(json.dumps(doc))
+    with pytest.raises(DbbError, match="older version"):
+        load_dataset(tmp_path)

@@ -9,8 +9,8 @@ import numpy as np
 from click.testing import CliRunner
 from dbb_capture.cli.capture import main
 
-from dbb_capture.geometry.cameras import Intrinsics, project_points
-from dbb_capture.geometry.conventions import opencv_from_opengl
+from dbb_capture.datasets.transforms import load_dataset
+from dbb_capture.geometry.cameras import project_points
 
 
 def test_fixed_camera_mode_mattes_a_moving_ball(tmp_path):
@@ -37,10 +37,8 @@ def test_fixed_camera_mode_mattes_a_moving_ball(tmp_path):
     assert len({json.dumps(f["viewpoint"]) for f in crops["frames"]}) == 1   # one constant viewpoint
     # The recorded crop camera is the one the window's pixels came from: the object centre (on the
     # window's centre ray, below the frame's) projects to the crop's centre, the ball to its place.
-    f0 = crops["frames"][0]
-    intr = Intrinsics(f0["w"], f0["h"], f0["fl_x"], f0["fl_y"], f0["cx"], f0["cy"])
-    c2w = opencv_from_opengl(np.array(f0["transform_matrix"]))
-    assert np.allclose(project_points(np.array([crops["object"]["center"]]), c2w, intr), 39.5, atol=1e-6)
+    f0 = load_dataset(ds).frames[0]
+    assert np.allclose(project_points(np.array([crops["object"]["center"]]), f0.c2w, f0.intr), 39.5, atol=1e-6)
     ious = []
     for f, t in zip(crops["frames"], truth):
         a = cv2.imread(str(ds / f["file_path"]), cv2.IMREAD_UNCHANGED)[..., 3] > 127

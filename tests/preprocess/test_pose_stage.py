@@ -11,7 +11,17 @@ from click.testing import CliRunner
 from conftest import rotation_error_deg
 from dbb_capture.cli.capture import main
 
+from dbb_capture.capture.board import BoardSpec
 from dbb_capture.geometry.conventions import opencv_from_opengl
+
+
+def o3d_points(path: Path) -> np.ndarray:
+    """The points (N, 3) of a PLY as open3d reads it (nerfstudio's splatfacto reads it so)."""
+    import open3d as o3d
+
+    pcd = o3d.io.read_point_cloud(str(path))
+    assert pcd.has_colors()
+    return np.asarray(pcd.points)
 
 
 def test_preprocess_stop_after_poses(distorted_capture, tmp_path):
@@ -34,17 +44,33 @@ def test_preprocess_stop_after_poses(distorted_capture, tmp_path):
         # Plumbing check: 320x240 frames with 6-12 corners each (accuracy: the rendered sweep above).
         assert np.linalg.norm(est[:3, 3] - true[:3, 3]) < 0.03
     assert np.median(rot) < 0.4 and max(rot) < 1.5
-    # The COLMAP model holds the same cameras, with COLMAP's +0.5 px principal point.
+    # Files use the corner origin (a centred camera has cx = w / 2), as COLMAP does: one principal point.
     import pycolmap
 
     rec = pycolmap.Reconstruction(str(ds / "colmap" / "sparse" / "0"))
     assert rec.num_images() == len(tf["frames"])
     cam = rec.cameras[1]
-    assert cam.params[2] == pytest.approx(tf["cx"] + 0.5)
+    cam_json = json.loads((ds / "camera.json").read_text())
+    assert cam.params[2] == pytest.approx(tf["cx"]) and tf["cx"] == pytest.approx(cam_json["cx"] + 0.5)
+    assert tf["applied_transform"] == np.eye(4)[:3].tolist()     # no axis swap for nerfstudio to insert
     im = next(iter(rec.images.values()))
-    fr = next(f for f in tf["frames"] if f["file_path"] == im.name)
+    fr = next(f for f in tf["frames"] if f["file_path"] == "images/" + im.name)     # COLMAP's image path: images/
     w2c = np.linalg.inv(opencv_from_opengl(np.array(fr["transform_matrix"])))
     np.testing.assert_allclose(im.cam_from_world().matrix(), w2c[:3], atol=1e-6)
+    # The board's corners: a point cloud (PLY, named in transforms.json) and COLMAP points whose
+    # observations are where the poses project them (the detected, undistorted corners).
+    pc = o3d_points(ds / tf["ply_file_path"])
+    board = BoardSpec.load(distorted_capture / "board.json")
+    assert 6 <= len(pc) <= len(board.chessboard_corners()) and np.abs(pc[:, 2]).max() < 1e-6
+    assert rec.num_points3D() == len(pc)
+    errs = []
+    for pid, pt in rec.points3D.items():
+        assert pt.track.length() >= 1
+        for el in pt.track.elements:
+            image = rec.images[el.image_id]
+            uv = image.project_point(pt.xyz)                        # COLMAP's pixels (corner origin)
+            errs.append(np.linalg.norm(uv - image.points2D[el.point2D_idx].xy))
+    assert np.median(errs) < 0.5 and max(errs) < 3, (np.median(errs), max(errs))
     report = json.loads((ds / "poses" / "report.json").read_text())
     assert report["frames_posed"] == len(tf["frames"]) and report["frames_sampled"] == 10
     assert all("corners" in f and f["sharpness"] > 0 for f in report["frames"])
