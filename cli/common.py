@@ -12,8 +12,8 @@ from dbb_capture.core.errors import DbbError
 from dbb_capture.core.progress import console
 
 
-class DbbGroup(click.Group):
-    """A click group whose usage errors and :class:`DbbError` end in one red line and exit 2."""
+class _OneLineErrors:
+    """Usage errors and :class:`DbbError` end in one red line and exit 2."""
 
     def main(self, args=None, prog_name=None, **extra):  # noqa: D102 - click API
         try:
@@ -38,9 +38,23 @@ class DbbGroup(click.Group):
         """How this command words the library's settings: as its own option (``crop_size`` ->
         ``--crop-size``) where the command has one, else by the setting's name."""
         argv = list(sys.argv[1:] if args is None else args)
-        cmd = next((self.commands[a] for a in argv if a in self.commands), None)
+        cmd = self._command_of(argv)
         flags = {p.name: p.opts[0] for p in (cmd.params if cmd else []) if isinstance(p, click.Option)}
         return lambda name: flags.get(name, name)
+
+
+class DbbGroup(_OneLineErrors, click.Group):
+    """A click group of commands with one-line errors (exit status 2)."""
+
+    def _command_of(self, argv: list[str]) -> click.Command | None:
+        return next((self.commands[a] for a in argv if a in self.commands), None)
+
+
+class DbbCommand(_OneLineErrors, click.Command):
+    """A single click command with one-line errors (exit status 2)."""
+
+    def _command_of(self, argv: list[str]) -> click.Command:
+        return self
 
 
 overwrite_option = click.option(

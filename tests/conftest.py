@@ -1,5 +1,5 @@
-"""Shared test helpers: the third-party data folder, small synthetic captures made once per
-session, a ring of cameras around an object and the error between two rotations."""
+"""Shared test helpers: the third-party data folder, small synthetic captures, training runs
+and bundles made once per session, a ring of cameras around an object and the error between two rotations."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from dbb_capture.capture.board import BoardSpec
 from dbb_capture.datasets.records import Frame, ObjectVolume
@@ -126,3 +127,50 @@ def gltf_reports(*paths: Path) -> list[dict]:
                          capture_output=True, text=True, timeout=120, cwd=REPO)
     assert res.returncode == 0, res.stderr
     return [json.loads(line) for line in res.stdout.splitlines()]
+
+
+@pytest.fixture(scope="session")
+def static_run(tmp_path_factory):
+    """A tiny PlenOctree run (a few steps on 24 px views of the synthetic toy)."""
+    from dbb_capture.datasets.transforms import write_transforms
+    from dbb_capture.static.field import FieldConfig
+    from dbb_capture.static.run import RunConfig, train_run
+
+    folder = tmp_path_factory.mktemp("bundle_static")
+    (folder / "ds").mkdir()
+    frames, vol = synthetic_object_frames(folder / "ds", n=12, size=24, seed=2)
+    write_transforms(folder / "ds" / "transforms.json", frames, vol)
+    torch.manual_seed(0)
+    cfg = FieldConfig(res_start=16, res_max=32, batch_rays=512, upsample_at=(0.3,), tv_points=2048)
+    train_run(folder / "ds", folder / "run", RunConfig(steps=20), cfg, quiet=True)
+    return folder, frames
+
+
+@pytest.fixture(scope="session")
+def static_bundle(static_run):
+    from dbb_capture.bundle.build import make_bundle
+
+    folder, _ = static_run
+    make_bundle(folder / "run", folder / "bundle")
+    return folder / "bundle"
+
+
+@pytest.fixture(scope="session")
+def dynamic_run(tmp_path_factory):
+    from dbb_capture.dynamic.config import RssmConfig, TrainConfig
+    from dbb_capture.dynamic.run import train_run
+    from dbb_capture.synth.crops import synthetic_crops
+
+    folder = tmp_path_factory.mktemp("bundle_dynamic")
+    synthetic_crops(folder / "ds", seconds=3.0, fps=10, size=32, still_steps=1, samples=1)
+    small = RssmConfig(size=32, deter=16, stoch=16, hidden=64, embed=64, enc_depth=8, dec_depth=8)
+    train_run(folder / "ds", folder / "run", small, TrainConfig(steps=3, batch=2), quiet=True)
+    return folder
+
+
+@pytest.fixture(scope="session")
+def dynamic_bundle(dynamic_run):
+    from dbb_capture.bundle.build import make_bundle
+
+    make_bundle(dynamic_run / "run", dynamic_run / "bundle")
+    return dynamic_run / "bundle"

@@ -45,6 +45,33 @@ class CropCamera:
                           self.viewpoint, self.window_px)
 
 
+def facing_camera(eye: np.ndarray, center: np.ndarray, radius: float, up: np.ndarray,
+                  size: int, fill: float) -> tuple[np.ndarray, Intrinsics]:
+    """The square pinhole camera at ``eye`` (3,) that looks at the object sphere (``center`` (3,),
+    ``radius`` m) with image up toward ``up``, the sphere's silhouette filling ``fill`` of its
+    ``size`` pixels: OpenCV camera-to-world (4, 4) and intrinsics (centred principal point).
+
+    Its image covers, through the centre and square to the optical axis, a plane of side
+    ``2 D tan(asin(r / D)) / fill`` (:func:`canvas_side`): the billboard's canvas.
+    """
+    eye = np.asarray(eye, float)
+    D = float(np.linalg.norm(eye - center))
+    if D <= radius * 1.001:
+        raise DbbError(f"camera is inside the object's bounding sphere (distance {D:.3f} m, radius {radius:.3f} m)")
+    f = fill * size / 2 / math.tan(math.asin(radius / D))
+    # The object's up must not be parallel to the viewing direction (a view from straight above).
+    if abs((center - eye) / D @ up) > 0.9995:
+        raise DbbError("camera looks straight down the up axis: the crop's up is undefined")
+    c = (size - 1) / 2
+    return look_at(eye, center, up), Intrinsics(size, size, f, f, c, c)
+
+
+def canvas_side(distance: float, radius: float, fill: float) -> float:
+    """Side (m) of the plane through the object centre, square to the view, that a
+    :func:`facing_camera` image covers from ``distance`` m."""
+    return 2 * distance * math.tan(math.asin(radius / distance)) / fill
+
+
 def crop_camera(c2w: np.ndarray, src: Intrinsics, center: np.ndarray, radius: float, up: np.ndarray,
                 size: int = 64, fill: float = 0.9) -> CropCamera:
     """The crop camera of a frame taken by ``c2w`` (4, 4, OpenCV) with intrinsics ``src``.
@@ -53,20 +80,9 @@ def crop_camera(c2w: np.ndarray, src: Intrinsics, center: np.ndarray, radius: fl
     crop side in pixels; ``fill``: fraction of the side the sphere's projected diameter takes.
     """
     eye = c2w[:3, 3]
-    D = float(np.linalg.norm(eye - center))
-    if D <= radius * 1.001:
-        raise DbbError(f"camera is inside the object's bounding sphere (distance {D:.3f} m, radius {radius:.3f} m)")
-    half_angle = math.asin(radius / D)
-    f = fill * size / 2 / math.tan(half_angle)
-    # The object's up must not be parallel to the viewing direction (a view from straight above).
-    view = (center - eye) / D
-    if abs(view @ up) > 0.9995:
-        raise DbbError("camera looks straight down the up axis: the crop's up is undefined")
-    crop_c2w = look_at(eye, center, up)
-    c = (size - 1) / 2
-    intr = Intrinsics(size, size, f, f, c, c)
+    crop_c2w, intr = facing_camera(eye, center, radius, up, size, fill)
     f_src = 0.5 * (src.fx + src.fy)
-    return CropCamera(intr, crop_c2w, viewpoint(eye, center, up), window_px=size * f_src / f)
+    return CropCamera(intr, crop_c2w, viewpoint(eye, center, up), window_px=size * f_src / intr.fx)
 
 
 def _project_crop_points(cam: CropCamera, src: Intrinsics, R: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:

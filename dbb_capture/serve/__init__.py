@@ -1,0 +1,1 @@
+"""dbb-serve: billboards redrawn live for moving viewers (docs/serve.md, docs/protocol.md)."""
