@@ -46,3 +46,6 @@ done
 echo
 echo "Demo finished in $(( (SECONDS - start) / 60 )) min $(( (SECONDS - start) % 60 )) s. It made:"
 for m in "${made[@]}"; do echo "  $m"; done
+echo
+echo "See them live (viewer and stream; Ctrl-C stops):"
+echo "  .venv/bin/dbb-serve $OUT/static_bundle $OUT/dynamic_bundle"
