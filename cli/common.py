@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 import sys
 from collections.abc import Callable
 
@@ -12,20 +13,36 @@ from dbb_capture.core.errors import DbbError
 from dbb_capture.core.progress import console
 
 
+_TERMINATED = []
+
+
+def _on_sigterm(signum, frame) -> None:
+    # SIGTERM (timeout, CI, docker stop) stops a command the way Ctrl-C does: every output's
+    # scratch is removed and the trainers save their checkpoint on the way out.
+    _TERMINATED.append(signum)
+    raise KeyboardInterrupt
+
+
 class _OneLineErrors:
-    """Usage errors and :class:`DbbError` end in one red line and exit 2."""
+    """Usage errors and :class:`DbbError` end in one red line and exit 2; Ctrl-C and SIGTERM
+    stop cleanly with one line (exit 130 and 143)."""
 
     def main(self, args=None, prog_name=None, **extra):  # noqa: D102 - click API
+        if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+            signal.signal(signal.SIGTERM, _on_sigterm)
         try:
             rv = super().main(args=args, prog_name=prog_name, standalone_mode=False, **extra)
-        except click.exceptions.Abort:
+        except (click.exceptions.Abort, KeyboardInterrupt):
+            if _TERMINATED:
+                console.print("[red]stopped[/red] (SIGTERM)")
+                sys.exit(143)
             console.print("[red]aborted[/red]")
             sys.exit(130)
         except click.ClickException as e:
             # click's own format spans several lines (usage, hint, error): users asked for one.
             ctx = getattr(e, "ctx", None)
             where = ctx.command_path if ctx is not None else (prog_name or self.name)
-            console.print(f"[red]error:[/red] {where}: {e.format_message()}", soft_wrap=True)
+            console.print(f"[red]error:[/red] {escape(f'{where}: {e.format_message()}')}", soft_wrap=True)
             sys.exit(2)
         except DbbError as e:
             console.print(f"[red]error:[/red] {escape(e.worded(self._flag_words(args)))}", soft_wrap=True)

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..core.errors import DbbError
 from ..core.images import to_u8
-from ..core.outputs import atomic_dir, empty_dir, read_json
+from ..core.outputs import atomic_dir, empty_dir, read_json, scratch_prefix, sweep_stale
 from ..core.progress import progress
 from ..datasets.transforms import load_poses
 from ..geometry.viewpoint import up_from_cameras, viewpoint
@@ -193,7 +193,8 @@ def make_bundle(run: Path, out: Path, zip_it: bool = False, dataset: Path | None
                 write_manifest(tmp, m)
             return m
         out.parent.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryDirectory(prefix=f".{out.name}.partial-", dir=out.parent) as t:
+        sweep_stale(out)
+        with tempfile.TemporaryDirectory(prefix=scratch_prefix(out), dir=out.parent) as t:
             tmp = Path(t) / "bundle"
             tmp.mkdir()
             m = build(tmp, prog)

@@ -13,17 +13,78 @@ from typing import Any, Iterator
 from .errors import DbbError
 
 
+def _host() -> str:
+    """A short tag of this machine: a pid means something only on the host that made it."""
+    import hashlib
+    import socket
+
+    return hashlib.sha256(socket.gethostname().encode()).hexdigest()[:6]
+
+
+def scratch_prefix(final: Path) -> str:
+    """Prefix of the scratch folders beside ``final`` that this process writes (pid and host in
+    the name, so a later run can tell a dead run's leftovers from a live run's work)."""
+    return f".{Path(final).name}.partial-{os.getpid()}-{_host()}-"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def sweep_stale(final: Path) -> list[Path]:
+    """Remove scratch (``.partial-PID-HOST-*``) and replaced (``.old-PID-HOST``) leftovers of
+    ``final`` whose process on this host is gone (killed runs leave them); returns what was removed."""
+    final = Path(final)
+    gone = []
+    if not final.parent.is_dir():
+        return gone
+    for p in final.parent.glob(f".{glob_escape(final.name)}.*"):
+        rest = p.name[len(final.name) + 2:]
+        kind, _, tail = rest.partition("-")
+        pid, _, host = tail.partition("-")
+        if kind in ("partial", "old") and pid.isdigit() and host[:6] == _host() and not _alive(int(pid)):
+            _remove(p)
+            gone.append(p)
+    return gone
+
+
+def glob_escape(name: str) -> str:
+    return "".join(f"[{c}]" if c in "*?[" else c for c in name)
+
+
+def _remove(p: Path) -> None:
+    if p.is_dir() and not p.is_symlink():
+        shutil.rmtree(p, ignore_errors=True)
+    else:
+        with contextlib.suppress(FileNotFoundError):
+            p.unlink()
+
+
 @contextlib.contextmanager
 def atomic_dir(final: Path, overwrite: bool = False) -> Iterator[Path]:
     """Yield a scratch folder beside ``final``; on success it replaces ``final`` in one rename.
 
-    On any exception the scratch folder is removed and ``final`` is left as it was.
+    On any exception the scratch folder is removed and ``final`` is left as it was. Leftovers
+    of earlier runs that were killed (no exception reached them) are removed first, and said.
     """
     final = Path(final)
     if final.exists() and not overwrite:
         raise DbbError(f"{final} already exists (pass {{=overwrite}} to replace it)")
-    final.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.partial-", dir=final.parent))
+    try:
+        final.parent.mkdir(parents=True, exist_ok=True)
+        for p in sweep_stale(final):
+            from .progress import console
+
+            console.print(f"removed {p.name}, left in {p.parent} by an earlier run that was killed", markup=False)
+        tmp = Path(tempfile.mkdtemp(prefix=scratch_prefix(final), dir=final.parent))
+    except OSError as e:
+        raise DbbError(f"cannot write {final}: {e.strerror or e}") from None
     os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes it private; results are for sharing
     try:
         yield tmp
@@ -31,13 +92,13 @@ def atomic_dir(final: Path, overwrite: bool = False) -> Iterator[Path]:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     old = None
-    if final.exists():
+    if final.exists() or final.is_symlink():
         # Move the old result aside first: the rename below must not meet a full folder.
-        old = final.parent / f".{final.name}.old-{os.getpid()}"
+        old = final.parent / f".{final.name}.old-{os.getpid()}-{_host()}"
         os.replace(final, old)
     os.replace(tmp, final)
     if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
+        _remove(old)
 
 
 def empty_dir(path: Path) -> bool:

@@ -8,6 +8,7 @@ core already). ``spawn``, not ``fork``: torch, PyAV and LibRaw threads do not su
 from __future__ import annotations
 
 import multiprocessing as mp
+import os
 import queue as queue_mod
 from concurrent.futures import ProcessPoolExecutor
 from typing import Callable, Sequence, TypeVar
@@ -20,12 +21,42 @@ R = TypeVar("R")
 _queue = None  # set in each worker process by _init
 
 
-def _init(queue) -> None:
+def die_with_parent(parent: int | None = None) -> None:
+    """Have the kernel kill this process when its parent (pid ``parent``, default the current
+    one) dies, however it dies (Linux's parent-death signal; elsewhere a watchdog thread that
+    polls the parent's pid)."""
+    import signal
+    import sys
+    import threading
+    import time
+
+    parent = os.getppid() if parent is None else parent
+    if os.getppid() != parent:                  # it died while this process started
+        os._exit(1)
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        PR_SET_PDEATHSIG = 1
+        if ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL) == 0:
+            if os.getppid() != parent:          # the parent died before the call
+                os._exit(1)
+            return
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os._exit(1)
+
+    threading.Thread(target=watch, daemon=True).start()
+
+
+def _init(queue, parent: int) -> None:
     import sys
 
     import cv2
 
     global _queue
+    die_with_parent(parent)
     _queue = queue
     cv2.setNumThreads(1)
     if "torch" in sys.modules:
@@ -52,7 +83,7 @@ def map_spawned(fn: Callable[[T], R], tasks: Sequence[T], workers: int,
     """
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
-    with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init, initargs=(q,)) as pool:
+    with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init, initargs=(q, os.getpid())) as pool:
         futures = [pool.submit(fn, t) for t in tasks]
         while True:
             try:

@@ -30,6 +30,7 @@ from ..bundle.render import load_stepper, read_rgba, rgba_tensor
 from ..bundle.verify import verify_bundle
 from ..core.errors import DbbError
 from ..core.images import to_u8
+from ..core.parallel import die_with_parent
 from ..crops.camera import canvas_side, facing_camera
 from ..geometry.viewpoint import viewpoint
 
@@ -308,6 +309,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("bundle")
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args(argv)
+    die_with_parent()                       # a killed server takes its render processes with it
     # Replies go to a private copy of stdout; anything a library prints goes to stderr instead.
     out = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)
