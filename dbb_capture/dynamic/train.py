@@ -18,6 +18,7 @@ from .losses import latent_loss, sequence_loss
 from .model import Rssm
 
 CHECKPOINT_FORMAT = "dbb-rssm-checkpoint"
+CHECKPOINT_STEPS = 500      # a checkpoint at least this often, besides every checkpoint_seconds and on a stop
 CHECKPOINT_VERSION = 2
 
 
@@ -100,8 +101,8 @@ def read_checkpoint(path: Path, device: torch.device) -> dict:
     """A checkpoint's contents; one written by an older version is refused (train again)."""
     try:
         ck = torch.load(path, map_location=device, weights_only=False)
-    except (OSError, RuntimeError) as e:
-        raise DbbError(f"cannot read RSSM checkpoint {path}: {e}") from None
+    except Exception as e:              # a damaged file fails in many ways inside the unpickler
+        raise DbbError(f"cannot read RSSM checkpoint {path}: {type(e).__name__}: {e}") from None
     if not isinstance(ck, dict) or ck.get("format") != CHECKPOINT_FORMAT:
         raise DbbError(f"{path} is an RSSM checkpoint of an older version: train the run again")
     if ck.get("version") != CHECKPOINT_VERSION:
@@ -180,6 +181,7 @@ def _train_loop(state: TrainState, data: SequenceData, tcfg: TrainConfig, ckpt: 
     model = state.model
     windows = _Windows(data, tcfg, state.step, next(model.parameters()).device)
     last_ckpt = t_prev = time.perf_counter()
+    last_step = state.step
     in_a_row = 0
     while not _done(state, tcfg):
         loss, parts = sequence_loss(model, *windows.draw(windows.full))
@@ -206,6 +208,7 @@ def _train_loop(state: TrainState, data: SequenceData, tcfg: TrainConfig, ckpt: 
                                   **{k: round(v, 4) for k, v in parts.items()}})
         if on_step is not None:
             on_step(state, parts if ok else None)
-        if ckpt is not None and now - last_ckpt > tcfg.checkpoint_seconds:
+        if ckpt is not None and (now - last_ckpt > tcfg.checkpoint_seconds
+                                 or state.step - last_step >= CHECKPOINT_STEPS):
             state.save(ckpt)
-            last_ckpt = now
+            last_ckpt, last_step = now, state.step

@@ -9,7 +9,6 @@ the field's tables for the lazy Adam step.
 from __future__ import annotations
 
 import os
-import pickle
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -65,8 +64,8 @@ class TrainState:
         """The state :meth:`save` wrote; a checkpoint of another version is refused."""
         try:
             st = torch.load(path, map_location="cpu", weights_only=False)
-        except (OSError, RuntimeError, EOFError, pickle.UnpicklingError) as e:
-            raise DbbError(f"cannot read checkpoint {path}: {e}") from None
+        except Exception as e:          # a damaged file fails in many ways inside the unpickler
+            raise DbbError(f"cannot read checkpoint {path}: {type(e).__name__}: {e}") from None
         version = st.get("version") if isinstance(st, dict) else None
         if version != CHECKPOINT_VERSION:
             raise DbbError(f"checkpoint {path} is of another version of the static trainer ({version or 1}, "
@@ -210,20 +209,38 @@ def torch_step(fld: VoxelField, b: Batch, gen: torch.Generator) -> tuple[torch.T
 
 def train(state: TrainState, bank: RayBank, budget: Budget,
           on_step: Callable[[TrainState, float], None] | None = None,
-          checkpoint: Path | None = None, checkpoint_every_s: float = 120.0) -> TrainState:
+          checkpoint: Path | None = None, checkpoint_every_s: float = 120.0,
+          checkpoint_every_steps: int = 5000) -> TrainState:
     """Optimize ``state.field`` on the rays of ``bank`` until ``budget`` is spent.
 
     Each step draws a batch (:func:`draw_batch`), renders it with TV (:func:`kernel_step` or
     :func:`torch_step`) and takes a sparse Adam step. The coarse-to-fine schedule follows the
     *fraction of the budget* spent, so a shorter budget runs the same stages faster.
-    ``on_step(state, running train PSNR)`` follows every step; checkpoints go to ``checkpoint``.
-    The field is left pruned: what gets baked and saved holds no empty lattice points.
+    ``on_step(state, running train PSNR)`` follows every step; checkpoints go to ``checkpoint``
+    every ``checkpoint_every_s`` seconds or ``checkpoint_every_steps`` steps, whichever comes
+    first (a large field takes seconds to write), and on Ctrl-C or SIGTERM. The field is left
+    pruned: what gets baked and saved holds no empty lattice points.
     """
     cfg = state.field.cfg
     gen = torch.Generator(device="cpu").manual_seed(cfg.seed + state.step)
     torch.manual_seed(cfg.seed + state.step)
     t_start = time.perf_counter() - state.seconds
-    last_ckpt = time.perf_counter()
+    try:
+        _loop(state, bank, budget, on_step, checkpoint, checkpoint_every_s, checkpoint_every_steps, gen, t_start)
+    except KeyboardInterrupt:
+        if checkpoint is not None:          # --resume continues from here
+            state.save(checkpoint)
+        raise
+    state.field = pruned(state.field, cfg.prune_alpha)
+    if checkpoint is not None:
+        state.save(checkpoint)
+    return state
+
+
+def _loop(state: TrainState, bank: RayBank, budget: Budget, on_step, checkpoint: Path | None,
+          every_s: float, every_steps: int, gen: torch.Generator, t_start: float) -> None:
+    cfg = state.field.cfg
+    last_ckpt, last_step = time.perf_counter(), state.step
     ema = None
     robust = cfg.robust_from is not None and cfg.robust_from < 1.0
     while True:
@@ -250,10 +267,7 @@ def train(state: TrainState, bank: RayBank, budget: Budget,
                                   "points": fld.n_active})
         if on_step is not None:
             on_step(state, psnr_from_mse(ema))
-        if checkpoint is not None and time.perf_counter() - last_ckpt > checkpoint_every_s:
+        if checkpoint is not None and (time.perf_counter() - last_ckpt > every_s
+                                       or state.step - last_step >= every_steps):
             state.save(checkpoint)
-            last_ckpt = time.perf_counter()
-    state.field = pruned(state.field, cfg.prune_alpha)
-    if checkpoint is not None:
-        state.save(checkpoint)
-    return state
+            last_ckpt, last_step = time.perf_counter(), state.step
