@@ -123,8 +123,8 @@ def write_capture(cfg: SynthConfig, out: Path, overwrite: bool = False,
                   with_camera_json: bool = False) -> SynthResult:
     """Render a whole capture into ``out`` (written aside, renamed into place).
 
-    Layout: ``video.mp4``, ``background.mp4``, ``board.json``, ``object.json``, optional
-    ``camera.json``, and ``ground_truth/{camera.json, cameras.json, object_model.json,
+    Layout: ``video.mp4``, ``background.mp4``, ``board.json``, ``object.json`` (sphere and
+    ``kind``), optional ``camera.json``, and ``ground_truth/{camera.json, cameras.json, object_model.json,
     masks/NNNNN.png}``. ``cameras.json`` holds per-frame OpenGL camera-to-world matrices in
     the board frame (as in ``transforms.json``) for the video and the clean plate.
     """
@@ -146,7 +146,8 @@ def write_capture(cfg: SynthConfig, out: Path, overwrite: bool = False,
         gt = tmp / "ground_truth"
         (gt / "masks").mkdir(parents=True)
         write_json(tmp / "board.json", cfg.board.to_json())
-        write_json(tmp / "object.json", {"center": center.round(6).tolist(), "radius": round(radius, 6)})
+        write_json(tmp / "object.json", {"center": center.round(6).tolist(), "radius": round(radius, 6),
+                                       "kind": cfg.kind})
         if with_camera_json:
             write_json(tmp / "camera.json", intr.to_json())
         write_json(gt / "camera.json", intr.to_json())
