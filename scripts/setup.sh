@@ -42,7 +42,7 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ] || ! .venv/bin/python -c "import
       pipq install -q "torch==2.13.0" || pipq install -q torch
     fi
   fi
-  pipq install -q -e ".[test]"
+  pipq install -q -e ".[test,ray]"
   # svox (PlenOctrees' own library) for the interoperability tests; its CUDA extension is optional,
   # and without build isolation pip builds the pure-Python package against the torch above.
   pipq install -q --no-build-isolation "svox==0.2.32"
