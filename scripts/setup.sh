@@ -17,6 +17,19 @@ if ! { ldconfig -p 2>/dev/null || true; } | grep -q 'libusb-1.0.so.0'; then
   fi
 fi
 
+# The viewer's browser tests drive Debian's Chromium with playwright (never a browser download).
+if [ ! -x /usr/bin/chromium ]; then
+  if command -v apt-get >/dev/null 2>&1 && { [ "$(id -u)" -eq 0 ] || command -v sudo >/dev/null 2>&1; }; then
+    SUDO=""
+    [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+    echo "setup: installing chromium (the viewer's browser tests)" >&2
+    { $SUDO apt-get update -qq >/dev/null && $SUDO apt-get install -y -qq chromium >/dev/null; } \
+      || echo "setup: warning: chromium could not be installed; the viewer's browser tests will be skipped" >&2
+  else
+    echo "setup: note: no /usr/bin/chromium; the viewer's browser tests will be skipped" >&2
+  fi
+fi
+
 # pip, quietly: some machines' pip configuration warns about every missing local index.
 pipq() {
   local rc
@@ -49,12 +62,13 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ] || ! .venv/bin/python -c "import
   echo "$want" > "$stamp"
 fi
 
-# JavaScript tools the tests use (the Khronos glTF validator), from package-lock.json.
+# JavaScript packages, from package-lock.json: the viewer's three.js and cannon-es (dbb-serve
+# serves node_modules at /vendor/), and tools the tests use (the Khronos glTF validator, iwer).
 if command -v npm >/dev/null 2>&1; then
   if [ ! -f node_modules/.package-lock.json ] || [ package-lock.json -nt node_modules/.package-lock.json ]; then
     echo "setup: installing the JavaScript tools (npm ci)" >&2
     npm ci --no-audit --no-fund --loglevel=error >/dev/null
   fi
 else
-  echo "setup: note: npm not found; the glTF validator tests will be skipped" >&2
+  echo "setup: note: npm not found; the viewer has no three.js and the glTF validator and viewer tests will be skipped" >&2
 fi

@@ -4,6 +4,7 @@ the ready line, and a clean stop on Ctrl-C or SIGTERM."""
 from __future__ import annotations
 
 import asyncio
+import os
 import signal
 import webbrowser
 from pathlib import Path
@@ -32,10 +33,28 @@ def placements_of(sources: list[Path]) -> list[Placement]:
     return row_of(sources, sizes)
 
 
+def node_modules() -> Path | None:
+    """The npm packages the viewer loads (three.js, cannon-es): ``$DBB_NODE_MODULES``, or the
+    repository's ``node_modules`` beside an editable install (``npm ci``, which scripts/setup.sh
+    runs); None where neither has three.js (the page then says what is missing)."""
+    env = os.environ.get("DBB_NODE_MODULES")
+    for p in ([Path(env)] if env else []) + [Path(__file__).resolve().parents[2] / "node_modules"]:
+        if (p / "three" / "package.json").is_file():
+            return p
+    return None
+
+
 def viewer_roots() -> dict[str, Path]:
-    """URL prefixes of the viewer's files (empty when the package ships no viewer)."""
+    """URL prefixes of the viewer's files (empty when the package ships no viewer): the page at
+    ``/`` and its JavaScript packages at ``/vendor/`` (when installed)."""
     here = Path(__file__).parent / "viewer"
-    return {"/": here} if here.is_dir() else {}
+    if not here.is_dir():
+        return {}
+    roots = {"/": here}
+    modules = node_modules()
+    if modules is not None:
+        roots["/vendor/"] = modules
+    return roots
 
 
 def serve_forever(sources: list[Path], host: str = "127.0.0.1", port: int = 8765, seed_port: int | None = None,

@@ -47,9 +47,10 @@ class Served:
                 self.proc.kill()
 
 
-def start_server(*args, timeout: float = 240.0) -> Served:
-    """``dbb-serve ARGS --port 0``, returned once it printed its ready line (stderr, merged)."""
-    cmd = [sys.executable, "-c", "from dbb_capture.cli.serve import main; main()", *map(str, args), "--port", "0"]
+def start_server(*args, timeout: float = 240.0, port: int = 0) -> Served:
+    """``dbb-serve ARGS --port PORT`` (0: a free one), returned once it printed its ready line
+    (stderr, merged)."""
+    cmd = [sys.executable, "-c", "from dbb_capture.cli.serve import main; main()", *map(str, args), "--port", str(port)]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             env={**os.environ, "COLUMNS": "200"})
     lines: list[str] = []
