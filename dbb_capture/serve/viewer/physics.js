@@ -81,7 +81,7 @@ export class Physics {
     }
     body.linearDamping = 0.1;
     body.angularDamping = 0.5;
-    body.sleepSpeedLimit = 0.01;
+    body.sleepSpeedLimit = kind === 'box' ? 0.02 : 0.01;
     body.sleepTimeLimit = 0.4;
     body.position.set(at.x, at.y, at.z);
     mesh.castShadow = true;
