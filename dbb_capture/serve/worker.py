@@ -38,6 +38,11 @@ _LEN = struct.Struct("<I")
 MAX_CATCH_UP_S = 1.0          # a dynamic state more than this behind the clock skips ahead
 STATIC_CACHE = 16             # encoded canvases kept per static object (an unchanged pose is free)
 
+# Alpha planes as PNG: run-length deflate after the "up" filter is 2-3x faster than zlib's default
+# strategy with adaptive filters, and smaller (mattes are long runs and row-to-row alike).
+ALPHA_PNG = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE,
+             cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_UP]
+
 # Encodings of a canvas (the protocol's formats and the thesis protocol's three modes).
 JPEG, PNG, SEED_RGBA, SEED_BORDER, SEED_BGR = "jpeg", "png", "seed-rgba", "seed-border", "seed-bgr"
 
@@ -107,13 +112,19 @@ def encode(rgba: np.ndarray, encoding: str, jpeg_quality: int = 90) -> tuple[byt
     blocks that straddle the silhouette then carry no dark edge into the object.
     """
     if encoding == JPEG:
-        a = rgba[..., 3:].astype(np.float32) / 255.0
-        pm = rgba[..., :3].astype(np.float32) * a
+        # OpenCV's arithmetic on whole interleaved images (the same float32 operations, the same
+        # bytes): numpy broadcasting (H, W, 1) over a strided (H, W, 3) view is several times slower.
+        a = rgba[..., 3].astype(np.float32) / 255.0
+        a3 = cv2.merge((a, a, a))
+        rgb = cv2.cvtColor(rgba, cv2.COLOR_RGBA2RGB)
+        pm = cv2.multiply(rgb.astype(np.float32), a3)
         k = max(3, rgba.shape[0] // 32) | 1
-        bleed = cv2.blur(pm, (k, k)) / np.maximum(cv2.blur(a, (k, k))[..., None], 1e-3)
-        rgb = np.where(a > 0.5, rgba[..., :3], np.clip(bleed * (1 - a) + pm, 0, 255)).astype(np.uint8)
-        ok1, c = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
-        ok2, al = cv2.imencode(".png", rgba[..., 3], [cv2.IMWRITE_PNG_COMPRESSION, 1])
+        den = np.maximum(cv2.blur(a, (k, k)), 1e-3)
+        bleed = cv2.divide(cv2.blur(pm, (k, k)), cv2.merge((den, den, den)))
+        out = np.clip(cv2.add(cv2.multiply(bleed, 1 - a3), pm), 0, 255).astype(np.uint8)
+        cv2.copyTo(rgb, (rgba[..., 3] > 127).view(np.uint8), out)          # where a > 0.5: the colour
+        ok1, c = cv2.imencode(".jpg", cv2.cvtColor(out, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
+        ok2, al = cv2.imencode(".png", np.ascontiguousarray(rgba[..., 3]), ALPHA_PNG)
         assert ok1 and ok2
         return c.tobytes(), al.tobytes()
     if encoding == SEED_BGR:
