@@ -43,6 +43,9 @@ def connect(address: str | None) -> ClusterInfo:
         opts = {"log_to_driver": False, "logging_level": logging.WARNING}
         try:
             if address is None:
+                # Ray runs workers at nice 15; here they do the user's main work, as the single
+                # commands do at nice 0 (RAY_worker_niceness set by the user wins).
+                os.environ.setdefault("RAY_worker_niceness", "0")
                 # "local": a new instance even where `ray start` left one running. Tasks return
                 # small records (the data moves through the shared folder): a small object store.
                 ray.init(address="local", num_cpus=os.cpu_count() or 1, include_dashboard=False,
