@@ -169,8 +169,10 @@ def dynamic_run(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
-def dynamic_bundle(dynamic_run):
+def dynamic_bundle(dynamic_run, tmp_path_factory):
     from dbb_capture.bundle.build import make_bundle
 
-    make_bundle(dynamic_run / "run", dynamic_run / "bundle")
-    return dynamic_run / "bundle"
+    # Its own folder: tests of the bundle command write bundles beside the run.
+    out = tmp_path_factory.mktemp("dynamic_bundle") / "bundle"
+    make_bundle(dynamic_run / "run", out)
+    return out
