@@ -20,13 +20,16 @@ in the frame, to when the frame is received) p50/p95, bytes per frame, the worke
 render processes and the clients. Beside each stream figure, measured in the same run with the
 server idle: the renderer alone (static: ``TreeRenderer.render`` of the canvas camera
 :func:`~dbb_capture.crops.camera.facing_camera` with the server's threads; dynamic: the
-TorchScript stepper's ``step`` and ``decode`` at the model's size) and the worker's whole job
+TorchScript stepper's ``step``, and its ``decode``, at the model's size: a frame for a new
+viewpoint is a decode, a step happens at the model's fps) and the worker's whole job
 (:func:`dbb_capture.serve.worker.handle`: render, uint8, encode), so that stream / renderer
 shows what the stream costs.
 
 Parts: ``static`` (the static bundle at 256 and at 800 on a ``--max-size 800`` server, 1, 2
 and 4 clients), ``scene`` (a scene.json placing the static bundle 5 times: one client asking
-for every object at once, and 5 clients one object each; per-object frames/s and min/max),
+for every object at once, whose frames/s count every object's frames, and 5 clients one object
+each; per-object frames/s and min/max; the renderer figures are one object's, on its share of
+the cores),
 ``dynamic`` (the demo's 64-pixel RSSM bundle and a 256-pixel one), ``soak`` (4 clients on the
 static bundle at 256 for ``--soak-seconds``: no error message, and the resident memory of the
 server and its render processes after ``--soak-warmup`` and at the end grows < 10 %).
