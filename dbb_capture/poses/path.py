@@ -151,7 +151,7 @@ def fill_from_device(poses: Sequence[FramePose], device_c2w: np.ndarray, min_ali
     board_from_device = rigid(R, np.median(Ts[:, :3, 3], axis=0))
     out = []
     for p in poses:
-        if p.status in ("no board", "too few corners", "collinear corners") and p.index < len(device_c2w):
+        if p.status in ("no board", "too few corners", "collinear corners", "no pose solution") and p.index < len(device_c2w):
             p = FramePose(p.index, p.time, p.name, "arkit", board_from_device @ device_c2w[p.index],
                           p.n_corners)
         out.append(p)

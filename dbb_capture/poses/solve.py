@@ -38,8 +38,8 @@ class FramePose:
     """A frame's camera: ``c2w`` (4, 4) OpenCV board-from-camera (metres), or None with ``status``.
 
     ``status``: "posed", "arkit" (board hidden: the device's own pose, aligned to the board),
-    or why there is none ("no board", "too few corners", "collinear corners", "reprojection",
-    "outlier", "blurry").
+    or why there is none ("no board", "too few corners", "collinear corners", "no pose solution",
+    "reprojection", "outlier", "blurry").
     """
 
     index: int
@@ -66,14 +66,19 @@ def reprojection_rms(obj: np.ndarray, img: np.ndarray, rvec, tvec, K, dist) -> f
     return float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img) ** 2, axis=1))))
 
 
-def solve_pose(obj: np.ndarray, img: np.ndarray, intr: Intrinsics) -> tuple[np.ndarray, float, float, np.ndarray]:
+def solve_pose(obj: np.ndarray, img: np.ndarray,
+               intr: Intrinsics) -> tuple[np.ndarray, float, float, np.ndarray] | None:
     """Planar PnP for board points ``obj`` (N, 3) seen at ``img`` (N, 2) px.
 
     IPPE gives both planar solutions; each is LM-refined. Returns (c2w (4, 4), RMS px,
-    ambiguity = RMS_best / RMS_other in (0, 1], c2w of the other solution).
+    ambiguity = RMS_best / RMS_other in (0, 1], c2w of the other solution), or None when IPPE
+    finds no solution (e.g. all corners but one on a line: OpenCV's collinearity check passes,
+    the homography is degenerate).
     """
     K, dist = intr.K, intr.dist_array
     n, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, img, K, dist, flags=cv2.SOLVEPNP_IPPE)
+    if not n:
+        return None
     sols = []
     for r, t in zip(rvecs[:n], tvecs[:n]):
         r, t = cv2.solvePnPRefineLM(obj, img, K, dist, r.copy(), t.copy())
@@ -116,10 +121,15 @@ def pose_frames(dets: Sequence[Detection], board: BoardSpec, intr: Intrinsics,
             out.append(FramePose(status="collinear corners", **base))
         else:
             obj, keep = obj_all[d.ids], None
-            c2w, err, ratio, alt = solve_pose(obj, d.corners, intr)
-            keep = corner_inliers(obj, d.corners, c2w, intr, cfg)
-            if keep is not None:
-                c2w, err, ratio, alt = solve_pose(obj[keep], d.corners[keep], intr)
+            sol = solve_pose(obj, d.corners, intr)
+            if sol is not None:
+                keep = corner_inliers(obj, d.corners, sol[0], intr, cfg)
+                if keep is not None:
+                    sol = solve_pose(obj[keep], d.corners[keep], intr)
+            if sol is None:
+                out.append(FramePose(status="no pose solution", **base))
+                continue
+            c2w, err, ratio, alt = sol
             status = "posed" if err <= cfg.max_reproj_px else "reprojection"
             out.append(FramePose(status=status, c2w=c2w, reproj_px=err, ambiguity=ratio,
                                  alt_c2w=alt, inliers=keep, **base))

@@ -59,3 +59,16 @@ def test_corner_off_by_pixels_is_dropped(rendered):
     plain = pose_frames([det], BOARD, intr, PoseConfig(corner_floor_px=1e9))[0]
     assert plain.inliers is None
     assert rotation_error_deg(pose.c2w[:3, :3], c2w[:3, :3]) < 0.5 * rotation_error_deg(plain.c2w[:3, :3], c2w[:3, :3])
+
+
+def test_corners_without_planar_solution_leave_the_frame_unposed():
+    """Five corners of the first row and one of the second (a real synthetic frame): OpenCV's
+    collinearity check passes but IPPE finds no solution; the frame is counted as not posed."""
+    from dbb_capture.geometry.cameras import Intrinsics
+
+    intr = Intrinsics(320, 240, 265.25, 265.25, 159.52, 119.12, (-0.0019, -0.0032, 0.0, 0.0, 0.0))
+    ids = np.array([1, 2, 3, 4, 5, 9])
+    corners = np.array([[268.399, 177.932], [241.007, 173.526], [214.820, 169.258], [189.786, 165.233],
+                        [165.766, 161.362], [216.525, 157.341]])
+    det = Detection(16, 2.0, "00016", ids, corners, 6, 1.0)
+    assert [p.status for p in pose_frames([det], BOARD, intr)] == ["no pose solution"]
