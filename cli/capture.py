@@ -136,13 +136,14 @@ def calibrate(input_path: Path, board_path: Path | None, output: Path, fps: floa
 
     if output.exists() and not overwrite:
         raise DbbError(f"{output} already exists (pass --overwrite to replace it)")
+    # The footage first: a missing or unreadable INPUT is named before the board it would hold.
+    source = open_footage(input_path)
+    source.info  # probe now: unreadable footage fails before any progress bar is drawn
     if board_path is None:
         if not (input_path.is_dir() and (input_path / "board.json").is_file()):
             raise click.BadParameter("pass --board board.json (INPUT holds no board.json)")
         board_path = input_path / "board.json"
     board = BoardSpec.load(board_path)
-    source = open_footage(input_path)
-    source.info  # probe now: unreadable footage fails before any progress bar is drawn
     with progress(transient=True) as prog:
         task = prog.add_task("detect board", total=None, info="")
         cal = calibrate_footage(source, board, fps, max_views, workers=_workers(workers),

@@ -54,6 +54,7 @@ def _one_clear_line(r: subprocess.CompletedProcess, *words: str) -> None:
     (("dbb-capture", "synth", "OUT", "--kind", "static", "--resolution", "641x480"), ("even",)),
     (("dbb-capture", "preprocess", "sample_data/static", "-o", "OUT", "--crop-size", "8"), ("--crop-size 8",)),
     (("dbb-capture", "preprocess", "in/my toy [v2]", "-o", "OUT"), ("in/my toy [v2]",)),
+    (("dbb-capture", "calibrate", "no/such.mp4", "-o", "OUT"), ("footage not found: no/such.mp4",)),
     (("dbb-train", "nosuchcommand"), ("No such command",)),
     (("dbb-export", "nosuchcommand"), ("No such command",)),
 ])
