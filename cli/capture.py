@@ -8,7 +8,7 @@ import click
 
 from dbb_capture.core.progress import console
 
-from .common import DbbGroup, overwrite_option
+from .common import DbbGroup, given, overwrite_option, refuse_with
 
 
 @click.group(cls=DbbGroup, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
@@ -156,6 +156,39 @@ def calibrate(input_path: Path, board_path: Path | None, output: Path, fps: floa
                   + (f" ({len(cal.rejected)} outlier views rejected)" if cal.rejected else ""))
 
 
+# Options read only from a stage on: with --stop-after before it they would do nothing.
+_READ_FROM = {"background": ("background", "background_minutes", "background_steps", "clean_plate", "video_room",
+                             "crop_size", "crop_fill"),
+              "crops": ("test_fraction", "sequence_length")}
+# What a fixed camera (--crop-window) has none of: board, poses, a room field.
+_NOT_FIXED = ("board_path", "camera_path", "object_path", "refine", "blur_ratio", "background_minutes",
+              "background_steps", "clean_plate", "video_room", "stop_after")
+
+
+def _refuse_contradictions(fixed: bool, stop_after: str | None) -> None:
+    """Options that contradict each other, or do nothing with the others given, are refused
+    before any work (one line naming them)."""
+    if fixed:
+        refuse_with(given(*_NOT_FIXED), "not used with --crop-window (a fixed camera: no board, poses or "
+                                        "room field; the crops come from the window)")
+    else:
+        refuse_with(given("fixed_matte"), "applies with --crop-window only (the board's crops are always matted)")
+    later = {"poses": ("background", "crops"), "background": ("crops",)}.get(stop_after or "", ())
+    if later:
+        names = [n for s in later for n in _READ_FROM[s]]
+        refuse_with(given(*names), f"not used with --stop-after {stop_after} (the {' and '.join(later)} "
+                                   f"stage{'s do' if len(later) > 1 else ' does'} not run)")
+    if len(given("background_minutes", "background_steps")) == 2:
+        raise click.UsageError("--background-minutes and --background-steps are two budgets for the room "
+                               "field: give one")
+    if given("background") and given("clean_plate") == ["--no-clean-plate"]:
+        raise click.UsageError("--background gives a clean plate and --no-clean-plate says not to use one: "
+                               "give one of them")
+    if given("clean_plate") == ["--no-clean-plate"] and given("video_room"):
+        raise click.UsageError(f"{given('video_room')[0]} applies with a clean plate only; --no-clean-plate "
+                               "learns the room from the object video")
+
+
 @main.command()
 @click.argument("capture", type=click.Path(path_type=Path))
 @click.option("-o", "--output", type=click.Path(path_type=Path), required=True,
@@ -226,6 +259,7 @@ def preprocess(capture: Path, output: Path, board_path: Path | None, camera_path
         except (ValueError, AssertionError):
             raise click.BadParameter("expected X,Y,SIZE in pixels, e.g. 200,40,280",
                                      param_hint="--crop-window") from None
+    _refuse_contradictions(window is not None, stop_after)
     inputs = resolve_capture(capture, board_path, camera_path, footage, object_path, background,
                              need_board=window is None)
     cfg = PreprocessConfig(fps=fps, blur_ratio=blur_ratio, refine=refine, crop_window=window, fixed_matte=fixed_matte,

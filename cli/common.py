@@ -7,6 +7,7 @@ import sys
 from collections.abc import Callable
 
 import click
+from click.core import ParameterSource
 from rich.markup import escape
 
 from dbb_capture.core.errors import DbbError
@@ -72,6 +73,38 @@ class DbbCommand(_OneLineErrors, click.Command):
 
     def _command_of(self, argv: list[str]) -> click.Command:
         return self
+
+
+def typed(*names: str) -> list[str]:
+    """The parameters among ``names`` (click parameter names) typed on the running command's
+    line, in the command's order."""
+    ctx = click.get_current_context()
+    return [p.name for p in ctx.command.params
+            if p.name in names and ctx.get_parameter_source(p.name) is ParameterSource.COMMANDLINE]
+
+
+def given(*names: str) -> list[str]:
+    """:func:`typed`, spelled as typed (``--no-clean-plate`` for a switch turned off)."""
+    ctx = click.get_current_context()
+    params = {p.name: p for p in ctx.command.params}
+    out = []
+    for n in typed(*names):
+        p = params[n]
+        off = isinstance(p, click.Option) and p.secondary_opts and ctx.params[n] is False
+        out.append((p.secondary_opts if off else p.opts)[0])
+    return out
+
+
+def refuse_with(flags: list[str], why: str) -> None:
+    """One line (exit 2) when any of ``flags`` was given: "``--a``, ``--b``: <why>"."""
+    if flags:
+        raise click.UsageError(f"{', '.join(flags)}: {why}")
+
+
+def refuse_resume_overwrite(resume: bool, overwrite: bool) -> None:
+    """A trainer's ``--resume`` continues RUN, ``--overwrite`` throws it away: never both."""
+    if resume and overwrite:
+        raise click.UsageError("--resume continues RUN and --overwrite replaces it: give one of them")
 
 
 overwrite_option = click.option(

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from .common import DbbCommand
+from .common import DbbCommand, given, refuse_with
 
 
 @click.command(cls=DbbCommand, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
@@ -32,4 +32,6 @@ def main(sources, host, port, seed_port, seed_size, max_size, token, open_browse
     (docs/protocol.md). Ctrl-C stops."""
     from dbb_capture.serve.run import serve_forever
 
+    if seed_port is None:
+        refuse_with(given("seed_size"), "applies with --seed-port only (the thesis protocol's frames)")
     serve_forever(list(sources), host, port, seed_port, seed_size, max_size, token, open_browser)

@@ -9,7 +9,7 @@ import click
 
 from dbb_capture.dynamic.config import preset_names
 
-from .common import DbbGroup
+from .common import DbbGroup, refuse_resume_overwrite, typed
 
 
 @click.group(cls=DbbGroup, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
@@ -64,6 +64,7 @@ def plenoctree(dataset, out, minutes, steps, downscale, resume, overwrite, mode,
     from dbb_capture.static.field import FieldConfig
     from dbb_capture.static.run import RunConfig, train_run
 
+    refuse_resume_overwrite(resume, overwrite)
     if threads:
         import torch
 
@@ -74,7 +75,10 @@ def plenoctree(dataset, out, minutes, steps, downscale, resume, overwrite, mode,
                        batch_rays=batch_rays, res_start=min(32, res_max or 32), robust_from=robust_from,
                        carve_share=carve_share,
                        observed_loss=observed_loss)
-    run = train_run(dataset, out, cfg, fcfg, resume=resume, overwrite=overwrite)
+    # A resumed run trains its checkpoint's field: these options, typed, must agree with it.
+    asked = typed("mode", "sh_degree", "sh_full_from", "res_max", "max_points", "batch_rays", "robust_from",
+                  "carve_share", "observed_loss")
+    run = train_run(dataset, out, cfg, fcfg, resume=resume, overwrite=overwrite, resume_asks=tuple(asked))
     rec = run.record
     mp = rec.metrics.get("mean_psnr_tree_white")
     console.print(f"wrote {out}: {rec.tree.file} ({rec.tree.bytes / 1e6:.1f} MB, {rec.tree.data_format}, "
@@ -124,16 +128,20 @@ def rssm(dataset, out, minutes, steps, size, batch, threads, seed, temperature, 
         TrainConfig,
         apply_preset,
         configs_from_settings,
+        model_changes,
     )
     from dbb_capture.dynamic.run import resume_configs, train_run
 
+    refuse_resume_overwrite(resume, overwrite)
     if threads:
         torch.set_num_threads(threads)
     if resume:      # the run's own settings, under what this command says (the model stays the checkpoint's)
         ctx = click.get_current_context()
         given = {k: v for k, v in (("batch", batch), ("seed", seed))
                  if ctx.get_parameter_source(k) is not click.core.ParameterSource.DEFAULT}
-        cfg, tcfg = resume_configs(out)
+        run_cfg, tcfg = resume_configs(out)
+        cfg = replace(run_cfg, size=int(size)) if ctx.get_parameter_source("size") is not \
+            click.core.ParameterSource.DEFAULT else run_cfg
         tcfg = replace(tcfg, minutes=minutes, steps=steps, **given)
     else:
         cfg, tcfg = RssmConfig(size=int(size)), TrainConfig(minutes, steps, batch=batch, seed=seed)
@@ -143,6 +151,10 @@ def rssm(dataset, out, minutes, steps, size, batch, threads, seed, temperature, 
         cfg, tcfg = configs_from_settings(list(settings), cfg, tcfg)
     except DbbError as e:
         raise DbbError(f"--set {e}") from None
+    changed = model_changes(run_cfg, cfg) if resume else []
+    if changed:
+        raise click.UsageError(f"--resume keeps the run's model, and these settings differ from it: "
+                               f"{'; '.join(changed)}; drop them or train a new run")
     record = train_run(dataset, out, cfg, tcfg, resume=resume, overwrite=overwrite, temperature=temperature)
     _print_rssm(out, record, f"{record.training.steps} steps in {record.training.seconds / 60:.1f} min")
 

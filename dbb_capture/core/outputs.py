@@ -166,6 +166,24 @@ def check_run_output(out: Path, overwrite: bool, resume: bool) -> None:
         raise DbbError(f"{out} already exists (pass {{=overwrite}} to replace it, {{=resume}} to continue it)")
 
 
+def refuse_spent_budget(out: Path, steps: int | None, minutes: float | None) -> None:
+    """``--resume`` of a finished run (no interrupted checkpoint beside it) whose budget ``steps``
+    / ``minutes`` (counted over all its training, as a resumed run counts them) is already spent
+    would train nothing and rewrite its record with a budget it never had: refused, one line."""
+    out = Path(out)
+    if (run_work_dir(out) / "checkpoint.pt").is_file() or not (out / "run.json").is_file():
+        return      # an interrupted run finishes (its bake, its report) whatever its step
+    rec = read_json(out / "run.json", "run record")
+    tr = rec.get("training") if isinstance(rec, dict) else None
+    if not isinstance(tr, dict) or not isinstance(tr.get("steps"), int) or not isinstance(tr.get("seconds"), (int, float)):
+        return      # not a record of ours: resume_checkpoint and the trainer say what is wrong
+    spent = ([f"{{=steps}} {steps}"] if steps is not None and tr["steps"] >= steps else []) + \
+        ([f"{{=minutes}} {minutes:g}"] if minutes is not None and tr["seconds"] >= 60 * minutes else [])
+    if spent:
+        raise DbbError(f"{out} is finished ({tr['steps']} steps, {tr['seconds'] / 60:.1f} min of training) and "
+                       f"{' and '.join(spent)} asks for no more: give a larger budget to train it further")
+
+
 def training_minutes(minutes: float | None, steps: int | None, default: float) -> float | None:
     """The wall-clock budget of a run: ``default`` minutes when neither budget is given."""
     if (minutes is not None and minutes <= 0) or (steps is not None and steps <= 0):

@@ -58,6 +58,21 @@ def find_dataset_file(path: Path) -> Path:
     raise InputError(f"{path} holds none of {', '.join(DATASET_FILES)}")
 
 
+def missing_crops(path: Path) -> str | None:
+    """Why the folder ``path``, a preprocess output (``preprocess.json``) without ``crops.json``,
+    has no object crops (one line naming the stages it ran and how to make them); None for any
+    other path (a folder with crops, a json file, a nerfstudio or Blender dataset)."""
+    path = Path(path)
+    record = path / "preprocess.json"
+    if not path.is_dir() or (path / "crops.json").is_file() or not record.is_file():
+        return None
+    meta = read_json(record, "preprocess record")
+    ran = meta.get("stages_run") if isinstance(meta, dict) else None
+    stages = ", ".join(map(str, ran)) if isinstance(ran, list) and ran else "unknown stages"
+    return (f"{path} has no object crops (crops.json): preprocess ran only {stages}; run "
+            f"`dbb-capture preprocess` without --stop-after to make them")
+
+
 def _intrinsics(d: dict, fallback: Intrinsics | None, size: tuple[int, int] | None,
                 where: str) -> Intrinsics:
     """Intrinsics from nerfstudio keys in ``d`` over ``fallback``; ``size`` = (w, h) if known."""

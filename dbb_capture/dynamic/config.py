@@ -7,6 +7,7 @@ Imports nothing heavy: the command line reads the preset names from here.
 
 from __future__ import annotations
 
+import math
 import sys
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
@@ -188,6 +189,23 @@ def leak_at_frame_rate(cfg: RssmConfig, fps: float | None) -> RssmConfig:
         return cfg
     leak = 1.0 - (1.0 - cfg.warp_leak) ** (cfg.warp_leak_fps / float(fps))
     return replace(cfg, warp_leak=leak, warp_leak_fps=float(fps))
+
+
+def model_changes(run: RssmConfig, asked: RssmConfig) -> list[str]:
+    """The model settings in which ``asked`` differs from a run's own ``run`` (its checkpoint's),
+    as "name value (the run's value)"; a resumed run keeps its model, so any is a contradiction.
+    ``asked``'s leak per frame is first rescaled to the run's frame rate, as training did (floats
+    agree to 1e-9: the rescaling's own rounding is no difference)."""
+    asked = leak_at_frame_rate(asked, run.warp_leak_fps)
+    pairs = [(f.name, getattr(asked, f.name), getattr(run, f.name)) for f in fields(RssmConfig) if f.name != "loss_scales"]
+    pairs += [(f"loss_scales.{k}", asked.loss_scales.get(k), run.loss_scales.get(k))
+              for k in {**run.loss_scales, **asked.loss_scales}]
+
+    def same(a, r) -> bool:
+        return math.isclose(a, r, rel_tol=1e-9) if isinstance(a, float) and isinstance(r, float) else a == r
+    def word(v) -> str:
+        return f"{v:.6g}" if isinstance(v, float) else str(v)
+    return [f"{name} {word(a)} (the run's {word(r)})" for name, a, r in pairs if not same(a, r)]
 
 
 # --------------------------------------------------------------------------- settings by name

@@ -16,7 +16,7 @@ from ..core.outputs import read_json
 from ..core.progress import progress
 from ..crops.sequences import sequence_windows
 from ..datasets.images import load_rgba
-from ..datasets.transforms import find_dataset_file, load_dataset
+from ..datasets.transforms import find_dataset_file, load_dataset, missing_crops
 from .rgba import premultiply
 
 
@@ -53,6 +53,9 @@ def load_sequences(dataset: Path, size: int = 64) -> SequenceData:
     Windows come from the file's ``sequences``; a file without them gets windows from the frame
     times (:func:`dbb_capture.crops.sequences.sequence_windows`, 11 frames).
     """
+    why = missing_crops(Path(dataset))
+    if why is not None:
+        raise DbbError(why)
     src = find_dataset_file(Path(dataset))
     if src.name != "crops.json":
         raise DbbError(f"{dataset}: the RSSM trains on a preprocess dataset (crops.json), found {src.name}")

@@ -16,6 +16,7 @@ from ..core.errors import DbbError
 from ..core.outputs import (
     atomic_dir,
     check_run_output,
+    refuse_spent_budget,
     resume_checkpoint,
     run_work_dir,
     training_minutes,
@@ -49,6 +50,8 @@ def train_run(dataset: Path, out: Path, cfg: RssmConfig, tcfg: TrainConfig, resu
     out = Path(out)
     check_run_output(out, overwrite, resume)
     tcfg = replace(tcfg, minutes=training_minutes(tcfg.minutes, tcfg.steps, default=15.0))
+    if resume:
+        refuse_spent_budget(out, tcfg.steps, tcfg.minutes)
     device = pick_device()
     work = run_work_dir(out)
     ckpt = work / "checkpoint.pt"

@@ -38,6 +38,7 @@ from ..core.outputs import (
     atomic_dir,
     check_run_output,
     read_json,
+    refuse_spent_budget,
     resume_checkpoint,
     run_work_dir,
     training_minutes,
@@ -53,7 +54,7 @@ from ..datasets.records import (
     holdout_every,
     holdout_named,
 )
-from ..datasets.transforms import load_dataset
+from ..datasets.transforms import load_dataset, missing_crops
 from ..geometry.cameras import scaled_intrinsics
 from ..octree.render import TreeRenderer
 from ..octree.tree import PlenOctree
@@ -255,14 +256,23 @@ def for_tree_depth(fcfg: FieldConfig, depth: int | None) -> FieldConfig:
 
 
 def train_run(dataset: Path, out: Path, cfg: RunConfig, field_cfg: FieldConfig | None = None,
-              resume: bool = False, overwrite: bool = False, quiet: bool = False) -> Run:
+              resume: bool = False, overwrite: bool = False, quiet: bool = False,
+              resume_asks: tuple[str, ...] = ()) -> Run:
     """Train a field on ``dataset``, bake it, and write the run folder ``out`` (atomically).
-    With ``resume``, training continues from the checkpoint of ``out`` (interrupted or finished)."""
+    With ``resume``, training continues from the checkpoint of ``out`` (interrupted or finished),
+    with the checkpoint's field settings: those named in ``resume_asks`` (``mode`` and
+    :class:`FieldConfig` names the caller set on purpose) must agree with them."""
     out = Path(out)
     check_run_output(out, overwrite, resume)
     cfg = replace(cfg, minutes=training_minutes(cfg.minutes, cfg.steps, default=10.0))
+    if resume:
+        refuse_spent_budget(out, cfg.steps, cfg.minutes)
     if cfg.downscale < 1:
         raise DbbError("the downscale factor must be at least 1")
+    why = missing_crops(Path(dataset))
+    if why is not None:
+        # Its transforms.json holds the whole room: trained as a scene it says nothing of the object.
+        raise DbbError(f"{why} (or give {Path(dataset) / 'transforms.json'} to train the whole room)")
     ds = load_dataset(Path(dataset))
     train_f, test_f = split_frames(ds, cfg)
     mode = cfg.mode if cfg.mode != "auto" else ("object" if ds.rgba else "scene")
@@ -275,6 +285,7 @@ def train_run(dataset: Path, out: Path, cfg: RunConfig, field_cfg: FieldConfig |
         state = TrainState.load(resume_checkpoint(out, CHECKPOINT_FILE), device)
         volume = state.field.volume
         mode = state.field.cfg.mode
+        _refuse_other_field(replace(field_cfg or FieldConfig(), mode=cfg.mode), state.field.cfg, resume_asks)
     fcfg = field_cfg or FieldConfig()
     fcfg = replace(fcfg, mode=mode).for_dataset(ds.kind)
     if fcfg.res_max is None:
@@ -321,6 +332,16 @@ def train_run(dataset: Path, out: Path, cfg: RunConfig, field_cfg: FieldConfig |
         write_json(tmp / "run.json", record.to_json())
     shutil.rmtree(work, ignore_errors=True)
     return Run(out, record)
+
+
+def _refuse_other_field(asked: FieldConfig, run: FieldConfig, names: tuple[str, ...]) -> None:
+    """A resumed run trains its checkpoint's field (``run``): the settings ``names`` of ``asked``
+    must be its own (``mode`` "auto" agrees with either)."""
+    differ = [f"{{={n}}} {getattr(asked, n)} (the run's {getattr(run, n)})" for n in names
+              if getattr(asked, n) != getattr(run, n) and not (n == "mode" and asked.mode == "auto")]
+    if differ:
+        raise DbbError(f"a resumed run keeps its field's settings, and these differ from them: {'; '.join(differ)}; "
+                       "drop them or train a new run")
 
 
 @torch.no_grad()

@@ -54,13 +54,47 @@ def _one_clear_line(r: subprocess.CompletedProcess, *words: str) -> None:
     (("dbb-capture", "synth", "OUT", "--kind", "static", "--resolution", "641x480"), ("even",)),
     (("dbb-capture", "preprocess", "sample_data/static", "-o", "OUT", "--crop-size", "8"), ("--crop-size 8",)),
     (("dbb-capture", "preprocess", "in/my toy [v2]", "-o", "OUT"), ("in/my toy [v2]",)),
-    (("dbb-capture", "calibrate", "no/such.mp4", "-o", "OUT"), ("footage not found: no/such.mp4",)),
     (("dbb-train", "nosuchcommand"), ("No such command",)),
     (("dbb-export", "nosuchcommand"), ("No such command",)),
 ])
 def test_bad_arguments_exit_2_with_one_line(tmp_path, args, words):
     args = tuple(str(tmp_path / a) if a == "OUT" else a for a in args)
     _one_clear_line(_run(*args), *words)
+    assert not any(tmp_path.iterdir()), "nothing may be left behind"
+
+
+@pytest.mark.parametrize("args, words", [
+    (("dbb-capture", "calibrate", "no/such.mp4", "-o", "OUT"), ("footage not found: no/such.mp4",)),
+    (("dbb-capture", "preprocess", "CAP", "-o", "OUT", "--crop-window", "0,0,64", "--board", "b.json"),
+     ("--board: not used with --crop-window",)),
+    (("dbb-capture", "preprocess", "CAP", "-o", "OUT", "--no-matte"), ("--no-matte: applies with --crop-window only",)),
+    (("dbb-capture", "preprocess", "CAP", "-o", "OUT", "--stop-after", "poses", "--crop-size", "128"),
+     ("--crop-size: not used with --stop-after poses (the background and crops stages do not run)",)),
+    (("dbb-capture", "preprocess", "CAP", "-o", "OUT", "--stop-after", "background", "--sequence-length", "5"),
+     ("--sequence-length: not used with --stop-after background",)),
+    (("dbb-capture", "preprocess", "CAP", "-o", "OUT", "--background-minutes", "1", "--background-steps", "9"),
+     ("give one",)),
+    (("dbb-capture", "preprocess", "CAP", "-o", "OUT", "--background", "p.mp4", "--no-clean-plate"), ("give one",)),
+    (("dbb-capture", "preprocess", "CAP", "-o", "OUT", "--no-clean-plate", "--no-video-room"),
+     ("--no-video-room applies with a clean plate only",)),
+    (("dbb-train", "plenoctree", "DS", "-o", "OUT", "--resume", "--overwrite"), ("give one of them",)),
+    (("dbb-train", "rssm", "DS", "-o", "OUT", "--resume", "--overwrite"), ("give one of them",)),
+    (("dbb-serve", "B", "--seed-size", "128"), ("--seed-size: applies with --seed-port only",)),
+])
+def test_contradictions_and_missing_inputs_are_named_first(tmp_path, args, words):
+    """Contradictory options are refused before the inputs are read, and a missing input is named
+    before the options it would make unnecessary (in-process: no interpreter start per case)."""
+    from click.testing import CliRunner
+
+    from dbb_capture.cli import serve
+
+    mains = GROUPS | {"dbb-serve": serve.main}
+    args = tuple(str(tmp_path / a) if a == "OUT" else a for a in args)
+    r = CliRunner().invoke(mains[args[0]], list(args[1:]), prog_name=args[0])
+    lines = [ln for ln in r.output.splitlines() if ln.strip()]
+    assert r.exit_code == 2 and len(lines) == 1 and lines[0].startswith("error:"), r.output
+    for w in words:
+        assert w in lines[0], (w, lines[0])
     assert not any(tmp_path.iterdir()), "nothing may be left behind"
 
 

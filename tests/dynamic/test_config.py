@@ -15,6 +15,7 @@ from dbb_capture.dynamic.config import (
     apply_preset,
     configs_from_settings,
     leak_at_frame_rate,
+    model_changes,
     preset_names,
     read_preset,
     setting_names,
@@ -103,3 +104,14 @@ def test_warp_leak_per_second_is_rescaled_to_the_footage_frame_rate():
     assert leak_at_frame_rate(cfg, 10.0).warp_leak == pytest.approx(0.1)
     plain = replace(SMALL, warp_leak=0.1)                         # the default: a leak per frame
     assert leak_at_frame_rate(plain, 30.0) == plain and leak_at_frame_rate(cfg, None) == cfg
+
+
+def test_a_resumed_model_is_compared_with_the_run_after_its_leak_is_rescaled():
+    """What a resumed command asks of the model against the run's own: the same preset again is no
+    change (its leak per frame rescaled to the footage as training did); another value is named."""
+    asked = replace(SMALL, warp_leak=0.1, warp_leak_fps=10.0)
+    run = leak_at_frame_rate(asked, 30.0)
+    assert model_changes(run, asked) == [] and model_changes(run, run) == []
+    more = replace(asked, deter=SMALL.deter * 2, loss_scales={**asked.loss_scales, "energy": 5.0})
+    assert model_changes(run, more) == [f"deter {SMALL.deter * 2} (the run's {SMALL.deter})",
+                                        "loss_scales.energy 5 (the run's 0)"]

@@ -41,6 +41,9 @@ def test_only_preprocess_datasets(tmp_path):
     (tmp_path / "transforms.json").write_text(json.dumps({"frames": [{"file_path": "a.png"}]}))
     with pytest.raises(DbbError, match="crops.json"):
         load_sequences(tmp_path)
+    (tmp_path / "preprocess.json").write_text(json.dumps({"stages_run": ["poses", "background"]}))
+    with pytest.raises(DbbError, match="preprocess ran only poses, background; run `dbb-capture preprocess` without"):
+        load_sequences(tmp_path)
 
 
 def test_long_windows_are_runs_of_consecutive_training_frames(data):

@@ -83,6 +83,14 @@ def test_settings_presets_and_resumed_settings_on_the_command_line(crops, tmp_pa
     _cfg, tcfg = resume_configs(acc)
     assert tcfg.augment == "none" and tcfg.batch == 3 and tcfg.steps == 3
     assert RunRecord.read(acc).training.steps == 3
+    # A spent budget, another model or --overwrite with --resume: one line each, the run kept as it is.
+    for extra, words in ((["--steps", "3"], "is finished (3 steps, "), (["--size", "64"], "size 64 (the run's 32)"),
+                         (["--set", "warp_leak=0.2"], "warp_leak 0.2 (the run's 0.05)"),
+                         (["--overwrite"], "--resume continues RUN and --overwrite replaces it")):
+        r = CliRunner().invoke(cli.main, ["rssm", str(crops.root), "-o", str(acc), "--resume", "--steps", "4",
+                                          "--threads", "1"] + extra)
+        assert r.exit_code == 2 and len(_lines(r)) == 1 and words in _lines(r)[0], r.output
+    assert RunRecord.read(acc).training.steps == 3 and RunRecord.read(acc).training.budget_steps == 3
     for bad in ("warp_leek=0.1", "warp_leak=lots", "warp_leak", "compose=accum"):
         r = CliRunner().invoke(cli.main, ["rssm", str(crops.root), "-o", str(tmp_path / "y"), "--set", bad])
         assert r.exit_code == 2 and len(_lines(r)) == 1 and "--set" in _lines(r)[0], r.output

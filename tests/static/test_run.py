@@ -12,7 +12,7 @@ from conftest import synthetic_object_frames
 from dbb_capture.cli.train import main
 
 from dbb_capture.core.errors import DbbError
-from dbb_capture.datasets.transforms import write_transforms
+from dbb_capture.datasets.transforms import missing_crops, write_transforms
 from dbb_capture.static.field import FieldConfig
 from dbb_capture.static.run import RUN_VERSION, RunRecord, for_tree_depth, load_run
 
@@ -61,6 +61,29 @@ def test_cli_writes_a_self_describing_run_and_rejects_bad_input(dataset, tmp_pat
     assert (load_run(tmp_path / "r3").record.field.carve_share, load_run(tmp_path / "r3").record.field.robust_from) \
         == (0.2, 0.5)
     assert CliRunner().invoke(main, args[:3] + [str(tmp_path / "r4"), "--carve", "2"]).exit_code == 2
+    # A spent budget, another field or --overwrite with --resume: one line each, the run kept as it is.
+    for extra, words in ((["--steps", "10"], "is finished (10 steps, "), (["--sh-degree", "3"], "--sh-degree 3 (the run's 2)"),
+                         (["--overwrite"], "--resume continues RUN and --overwrite replaces it")):
+        res = CliRunner().invoke(main, args + ["--resume", "--steps", "12"] + extra)
+        assert res.exit_code == 2 and len(res.output.strip().splitlines()) == 1 and words in res.output, res.output
+    assert load_run(run).record.training.steps == 10 and load_run(run).record.training.budget_steps == 10
+
+
+def test_a_preprocess_dataset_without_crops_is_refused(dataset, tmp_path):
+    """``preprocess --stop-after poses`` leaves the full frames only: the plain folder would train
+    the whole room, so it is refused with how to make the crops; its transforms.json given by
+    name is still a dataset (the room, deliberately)."""
+    import shutil
+
+    data, _ = dataset
+    poses_only = tmp_path / "ds"
+    shutil.copytree(data, poses_only)
+    (poses_only / "preprocess.json").write_text(json.dumps({"stages_run": ["poses"], "stop_after": "poses"}))
+    res = CliRunner().invoke(main, ["plenoctree", str(poses_only), "-o", str(tmp_path / "run"), "--steps", "2"])
+    assert res.exit_code == 2 and len(res.output.strip().splitlines()) == 1, res.output
+    assert "has no object crops (crops.json): preprocess ran only poses" in res.output
+    assert "without --stop-after" in res.output and not (tmp_path / "run").exists()
+    assert missing_crops(poses_only / "transforms.json") is None and missing_crops(data) is None
 
 
 def test_runs_of_another_version_or_damaged_records_are_refused(dataset, tmp_path):
