@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import click
@@ -281,3 +282,17 @@ def preprocess(capture: Path, output: Path, board_path: Path | None, camera_path
                 f"{st['sequences']['train']} + {st['sequences']['test']} sequences; see dataset.json "
                 f"and contact_sheet.png")
     console.print(f"[green]wrote[/green] {res.dataset}: stages {', '.join(res.stages_run)}" + what)
+    poses = Path(res.dataset) / "poses" / "report.json"
+    report = json.loads(poses.read_text()) if poses.is_file() else {}
+    if "frames_posed" in report:              # a fixed camera has no poses to speak of
+        console.print(_poses_words(report), markup=False)
+
+
+def _poses_words(report: dict) -> str:
+    """What the poses stage's figures mean, in one line."""
+    err = report.get("reprojection_px") or {}
+    line = f"poses: {report['frames_posed']} of {report['frames_sampled']} frames posed"
+    if "median" in err:
+        line += (f", the board's corners land {err['median']:.2f} px (median; 95 % within {err['p95']:.2f} px) "
+                 "from where the poses and lens put them (under 1 px is good)")
+    return line + "; camera centres and object sphere in poses/camera_path.png"

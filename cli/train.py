@@ -85,6 +85,8 @@ def plenoctree(dataset, out, minutes, steps, downscale, resume, overwrite, mode,
                   f"depth {rec.tree.depth_limit}), {rec.training.steps} steps in "
                   f"{rec.training.seconds / 60:.1f} min"
                   + (f", {rec.metrics['views']} PSNR {mp:.2f} dB on white" if mp is not None else ""))
+    if mp is not None:
+        console.print(_psnr_words(mp, rec.metrics["views"] == "held-out", out), markup=False)
 
 
 @main.command("rssm")
@@ -178,6 +180,28 @@ def rssm_eval(run, dataset, temperature, calibrate) -> None:
     _print_rssm(run, RunRecord.read(run), "re-evaluated")
 
 
+def _psnr_words(p: float, heldout: bool, out: Path) -> str:
+    """What a PlenOctree run's PSNR means, in one line."""
+    from dbb_capture.core.metrics import rms_levels
+
+    which = "held-out views (not trained on)" if heldout else "training views (no held-out ones: fit, not new views)"
+    return (f"PSNR {p:.1f} dB on {which}: renders differ from the photos by {rms_levels(p):.1f} of 255 levels "
+            f"(RMS, white background included); higher is better, 30 dB and up usually looks close to the "
+            f"photo; truth | render in {out / 'report'}/heldout_*.png")
+
+
+def _rssm_words(ev: dict, out: Path) -> str:
+    """What an RSSM run's evaluation means, in one line."""
+    p = ev["mean_psnr_db"]
+    gain = {"vs_copy_first": p["model"] - p["copy_first"], "vs_near": p["model"] - p["near"]}
+    ratio = ev["motion"]["ratio"]
+    motion = ("the footage does not move at a still viewpoint (no motion ratio)" if ratio is None else
+              f"rollouts at a still viewpoint move {ratio:.2f}x as much as the footage (1 is right, 0 frozen)")
+    return (f"the model predicts {gain['vs_copy_first']:+.2f} dB against copying the first frame and "
+            f"{gain['vs_near']:+.2f} dB against the nearest training view (above 0: better than that baseline); "
+            f"{motion}; truth / prediction / near in {out / 'report'}/strip.png")
+
+
 def _print_rssm(out: Path, record, what: str) -> None:
     from dbb_capture.core.progress import console
 
@@ -186,6 +210,7 @@ def _print_rssm(out: Path, record, what: str) -> None:
     console.print(f"wrote {out}: {what}; 10-step open-loop PSNR {p['model']:.2f} dB "
                   f"(copy-first {p['copy_first']:.2f}, near {p['near']:.2f}) on {ev['windows']} {ev['split']} "
                   f"windows; motion-energy ratio {ev['motion']['ratio']}")
+    console.print(_rssm_words(ev, out), markup=False)
     st = record.stepper
     cal = st.temperature_calibration
     console.print(f"run-time temperature {st.temperature:.3g}"

@@ -4,6 +4,7 @@ and bundles made once per session, a ring of cameras around an object and the er
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +17,10 @@ from dbb_capture.geometry.cameras import Intrinsics
 from dbb_capture.geometry.transforms import look_at
 from dbb_capture.synth.capture import write_capture
 from dbb_capture.synth.scene import SynthConfig
+
+# Without a terminal, progress prints plain lines (dbb_capture.core.progress): not in the suite,
+# whose tests read commands' output line by line; tests of progress ask for them.
+os.environ.setdefault("DBB_PROGRESS_SECONDS", "0")
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO / ".." / "shared" / "data"

@@ -20,19 +20,22 @@ from ..datasets.transforms import load_poses
 from ..geometry.viewpoint import up_from_cameras, viewpoint
 from .manifest import CHECKSUM, MANIFEST, Bundle, Manifest, write_manifest
 from .previews import write_dynamic_previews, write_png, write_static_previews
-from .proxy import bundle_from_board, dynamic_proxy, static_proxy, write_glb
+from .proxy import SupportPlane, bundle_from_board, dynamic_proxy, static_proxy, write_glb
 from .render import DynamicRenderer
 
 
-def _dataset_cameras(dataset: Path) -> tuple[list[float], np.ndarray]:
-    """Up (3,) and camera poses (N, 4, 4, OpenCV, board frame) of a dataset, without its images.
+def _dataset_cameras(dataset: Path) -> tuple[list[float], np.ndarray, bool]:
+    """Up (3,), camera poses (N, 4, 4, OpenCV, board frame) of a dataset, without its images, and
+    whether the dataset is in a measured board frame.
 
-    Up is the board normal on the cameras' side: the dataset's recorded "up", else from its poses.
+    Up is the board normal on the cameras' side: the dataset's recorded "up" (a dbb-capture
+    dataset: its board plane z = 0 is the table), else from its poses (another tool's dataset,
+    whose z = 0 need not be a support).
     """
     c2w, meta = load_poses(dataset)
     if isinstance(meta.get("up"), list) and len(meta["up"]) == 3:
-        return [float(v) for v in meta["up"]], c2w
-    return [float(v) for v in up_from_cameras(c2w)], c2w
+        return [float(v) for v in meta["up"]], c2w, True
+    return [float(v) for v in up_from_cameras(c2w)], c2w, False
 
 
 def mean_azimuth(c2w: np.ndarray, center: np.ndarray, up: np.ndarray) -> float:
@@ -93,12 +96,13 @@ def build_static(r, tmp: Path, dataset: Path | None, prog) -> Manifest:
     run, rec = r.path, r.record
     _need(run, rec.tree.file, r.density_grid_path.name)
     center, radius = np.asarray(rec.volume.center, float), float(rec.volume.radius)
-    up, cams = _dataset_cameras(_run_dataset(rec.dataset, run, dataset))
+    up, cams, board_frame = _dataset_cameras(_run_dataset(rec.dataset, run, dataset))
     T = bundle_from_board(center, up)
+    support = SupportPlane.board(np.asarray(up)) if board_frame else None
     (tmp / "model").mkdir()
     shutil.copyfile(r.tree_path, tmp / "model" / "plenoctree.npz")
     task = prog.add_task("proxy mesh", total=1, info="marching cubes")
-    proxy = static_proxy(r.density_grid_path, T)
+    proxy = static_proxy(r.density_grid_path, T, support=support)
     write_glb(tmp / "proxy.glb", proxy)
     prog.advance(task)
     previews = write_static_previews(tmp / "previews", tmp / "model" / "plenoctree.npz", T, radius,
@@ -116,7 +120,8 @@ def build_static(r, tmp: Path, dataset: Path | None, prog) -> Manifest:
         canvas={"size_m": 2 * radius, "note": "a camera-facing square of this side, centred on the object, "
                                                  "holds the object sphere"},
         colour_activation=rec.tree.colour_activation, previews=previews,
-        created=_created(run, RUN_FORMAT, rec.training.steps, rec.training.seconds))
+        created=_created(run, RUN_FORMAT, rec.training.steps, rec.training.seconds),
+        support_plane=None if support is None else support.in_bundle(T))
 
 
 def build_dynamic(run: Path, rec, tmp: Path, dataset: Path | None, prog) -> Manifest:
@@ -132,8 +137,10 @@ def build_dynamic(run: Path, rec, tmp: Path, dataset: Path | None, prog) -> Mani
     if "center" not in o or "radius" not in o:
         raise DbbError(f"{run}/run.json has no object sphere")
     center, radius = np.asarray(o["center"], float), float(o["radius"])
-    up = rec.up or _dataset_cameras(ds_file)[0]
+    # The run records the dataset's up; a dataset without one has no measured board plane.
+    up, _, board_frame = (rec.up, None, True) if rec.up else _dataset_cameras(ds_file)
     T = bundle_from_board(center, up)
+    support = SupportPlane.board(np.asarray(up, float)) if board_frame else None
     (tmp / "model").mkdir()
     shutil.copyfile(Path(run) / rec.stepper.file, tmp / "model" / "stepper.ts")
     shutil.copyfile(Path(run) / rec.model_file, tmp / "model" / "rssm.pt")
@@ -143,7 +150,7 @@ def build_dynamic(run: Path, rec, tmp: Path, dataset: Path | None, prog) -> Mani
     write_png(tmp / "model" / "first_frame.png", to_u8(load_rgba(first)))
     vp = viewpoint(first.c2w[:3, 3], center, np.asarray(up, float))
     task = prog.add_task("proxy mesh", total=1, info="visual hull")
-    proxy = dynamic_proxy(ds_file, center, radius, T)
+    proxy = dynamic_proxy(ds_file, center, radius, T, support=support)
     write_glb(tmp / "proxy.glb", proxy)
     prog.advance(task)
     m = Manifest(
@@ -162,7 +169,8 @@ def build_dynamic(run: Path, rec, tmp: Path, dataset: Path | None, prog) -> Mani
         canvas={"size_m": 2 * radius / fill, "note": "side of the camera-facing square the model's frame "
                                                       "covers at the object centre (far camera)"},
         colour_activation="sigmoid (decoder output, straight RGBA)", previews={},
-        created=_created(run, RUN_FORMAT, rec.training.steps, rec.training.seconds))
+        created=_created(run, RUN_FORMAT, rec.training.steps, rec.training.seconds),
+        support_plane=None if support is None else support.in_bundle(T))
     b = Bundle(tmp, tmp, m)
     m.previews = write_dynamic_previews(tmp / "previews", DynamicRenderer(b), prog)
     return m

@@ -4,7 +4,9 @@ A bundle is a folder (or the same folder zipped, ``.dbb``) holding:
 
 - ``manifest.json``: :class:`Manifest` (format ``"deep-billboard"``, version, kind, model and
   the inputs it expects, ``bundle_from_board``, object sphere and up in the board frame,
-  billboard canvas size in metres, colour activation, previews, creation details, and
+  billboard canvas size in metres, colour activation, previews, creation details, the
+  support plane in bundle space where the capture measured one (null otherwise; absent in
+  bundles written before it was added, which read and verify as before), and
   ``files``: path, sha256 and bytes of every other file);
 - ``manifest.sha256``: the sha256 of ``manifest.json`` (``sha256sum -c`` format), so a changed
   byte anywhere in the bundle is caught;
@@ -73,12 +75,14 @@ class Manifest:
     previews: dict
     created: dict
     files: list[FileEntry] = field(default_factory=list)
+    support_plane: dict | None = None          # {point, normal, note}: bundle space, metres (the table)
     format: str = FORMAT
     version: int = VERSION
 
     def to_json(self) -> dict:
         d = asdict(self)
-        return {"format": d.pop("format"), "version": d.pop("version"), **d}
+        files = d.pop("files")                 # the long list last
+        return {"format": d.pop("format"), "version": d.pop("version"), **d, "files": files}
 
     @classmethod
     def from_json(cls, d: object, where: str = MANIFEST) -> Manifest:
@@ -109,8 +113,11 @@ class Manifest:
             files = [FileEntry(str(e["path"]), str(e["sha256"]), int(e["bytes"])) for e in d["files"]]
         except (TypeError, KeyError, ValueError):
             raise DbbError(f"{where}: files must be [{{path, sha256, bytes}}]") from None
+        plane = d.get("support_plane")
+        if plane is not None and support_plane_of(plane) is None:
+            raise DbbError(f"{where}: support_plane must be {{point: [x, y, z], normal: [x, y, z]}} (unit normal)")
         return cls(d["kind"], d["model"], d["inputs"], d["proxy_mesh"], T.tolist(), d["object"], d["up"],
-                   d["canvas"], d.get("colour_activation"), d["previews"], d["created"], files)
+                   d["canvas"], d.get("colour_activation"), d["previews"], d["created"], files, plane)
 
     @property
     def T(self) -> np.ndarray:
@@ -123,6 +130,21 @@ class Manifest:
     @property
     def radius(self) -> float:
         return float(self.object["radius"])
+
+    @property
+    def support(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The support plane in bundle space: (point (3,), unit normal (3,)), or None."""
+        return None if self.support_plane is None else support_plane_of(self.support_plane)
+
+
+def support_plane_of(d: object) -> tuple[np.ndarray, np.ndarray] | None:
+    """(point (3,), normal (3,)) of a manifest's ``support_plane`` entry, None if malformed."""
+    try:
+        p, n = np.asarray(d["point"], float), np.asarray(d["normal"], float)      # type: ignore[index]
+    except (TypeError, KeyError, ValueError, IndexError):
+        return None
+    ok = p.shape == n.shape == (3,) and np.all(np.isfinite(p)) and np.all(np.isfinite(n))
+    return (p, n) if ok and abs(float(np.linalg.norm(n)) - 1.0) < 1e-3 else None
 
 
 def sha256_of(path: Path) -> str:

@@ -30,6 +30,34 @@ from ..core.errors import DbbError
 MAX_TRIANGLES = 5000
 
 
+@dataclass(frozen=True)
+class SupportPlane:
+    """The plane an object stands on (the board plane z = 0), board frame: ``point`` (3,) metres
+    and unit ``normal`` (3,), the board's up (the side the cameras were)."""
+
+    point: np.ndarray
+    normal: np.ndarray
+
+    @classmethod
+    def board(cls, up: np.ndarray) -> SupportPlane:
+        n = np.asarray(up, float)
+        return cls(np.zeros(3), n / np.linalg.norm(n))
+
+    def height(self, p_board: np.ndarray) -> np.ndarray:
+        """Signed height (...,) in metres of board points (..., 3) above the plane."""
+        return (np.asarray(p_board, float) - self.point) @ self.normal
+
+    def in_bundle(self, T: np.ndarray) -> dict:
+        """The plane in bundle space (``T`` = bundle_from_board): the point of the plane nearest
+        the object centre (the bundle origin) and the normal, for the manifest."""
+        foot = transform_points(T, self.point)
+        n = T[:3, :3] @ self.normal
+        return {"point": [round(float(v), 6) + 0.0 for v in n * float(foot @ n)],     # + 0.0: no -0.0
+                "normal": [round(float(v), 6) + 0.0 for v in n],
+                "note": "the board plane (the table the object stands on): bundle space, metres; "
+                        "the proxy mesh is cut by it"}
+
+
 @dataclass
 class ProxyMesh:
     """A closed triangle mesh and its convex hull in bundle space (metres, +Y up)."""
@@ -40,6 +68,7 @@ class ProxyMesh:
     hull_faces: np.ndarray       # (Fh, 3) int64
     method: str                  # "marching cubes", "visual hull" or "sphere"
     note: str                    # how it was made (threshold, views) or why a sphere
+    base_m: float | None = None  # lowest vertex above the support plane (0: rests on it; None: no plane)
 
     @property
     def watertight(self) -> bool:
@@ -49,6 +78,7 @@ class ProxyMesh:
         return {"file": file, "method": self.method, "note": self.note, "triangles": len(self.faces),
                 "hull_triangles": len(self.hull_faces), "watertight": bool(self.watertight),
                 "volume_m3": float(abs(_trimesh(self.vertices, self.faces).volume)),
+                "base_above_support_m": None if self.base_m is None else round(self.base_m, 6),
                 "space": "bundle (object-centred, metres, +Y up)"}
 
 
@@ -103,23 +133,36 @@ def _decimate(v: np.ndarray, f: np.ndarray, max_triangles: int) -> tuple[np.ndar
     return np.asarray(m.vertices, float), np.asarray(m.triangles, np.int64)
 
 
+def _heights(plane: SupportPlane, lo: np.ndarray, cell: np.ndarray, shape: tuple, first: float) -> np.ndarray:
+    """Height above ``plane`` (metres) of the samples of a grid whose sample i along axis k sits
+    at ``lo[k] + cell[k] * (i + first)``: (shape)."""
+    ax = [(lo[k] + cell[k] * (np.arange(shape[k]) + first) - plane.point[k]) * plane.normal[k] for k in range(3)]
+    return ax[0][:, None, None] + ax[1][None, :, None] + ax[2][None, None, :]
+
+
 def occupancy_mesh(mask: np.ndarray, bbox_min: np.ndarray, bbox_max: np.ndarray,
-                   max_triangles: int = MAX_TRIANGLES) -> tuple[np.ndarray, np.ndarray]:
+                   max_triangles: int = MAX_TRIANGLES,
+                   support: SupportPlane | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Closed surface (V, 3) board-frame metres, faces (F, 3) of a cleaned occupancy grid.
 
     ``mask`` (G, G, G) bool indexed [x, y, z] at cell centres of the box [bbox_min, bbox_max].
     The grid is padded so the surface closes at the box; after decimation to ``max_triangles``
-    the mesh must still be watertight, else the grid is halved and meshed again.
+    the mesh must still be watertight, else the grid is halved and meshed again. With a
+    ``support`` plane, what lies under it is cut away and the cut closed by a flat base on it.
     """
     from scipy import ndimage
     from skimage.measure import marching_cubes
 
-    mask = clean_occupancy(np.asarray(mask, bool))
-    if not mask.any():
-        raise DbbError("nothing occupied to mesh")
     lo, hi = np.asarray(bbox_min, float), np.asarray(bbox_max, float)
+    cell0 = (hi - lo) / np.asarray(np.shape(mask), float)
+    mask = np.asarray(mask, bool)
+    if support is not None:
+        # Keep one layer of cells under the plane: the level set below places the base on it.
+        mask = mask & (_heights(support, lo, cell0, mask.shape, 0.5) > -cell0.max())
+    mask = clean_occupancy(mask)
+    if not mask.any():
+        raise DbbError("nothing occupied to mesh" + ("" if support is None else " above the board plane"))
     # Mesh only the occupied box (plus a margin): the object rarely fills its cube.
-    cell0 = (hi - lo) / np.asarray(mask.shape, float)
     idx = np.argwhere(mask)
     a = np.maximum(idx.min(0) - 2, 0)
     b = np.minimum(idx.max(0) + 3, mask.shape)
@@ -131,11 +174,20 @@ def occupancy_mesh(mask: np.ndarray, bbox_min: np.ndarray, bbox_max: np.ndarray,
         cell = (hi - lo) / G
         # A light blur turns the voxel staircase into a smooth level set at the same boundary.
         vol = np.pad(ndimage.gaussian_filter(grid, 0.6), 2)
+        if support is not None:
+            # Intersect with the half-space above the plane: a field linear in the height, at the
+            # level on the plane and gentle (under the blurred grid's interior there), so marching
+            # cubes' linear interpolation puts the base on the plane.
+            ramp = 0.5 + _heights(support, lo, cell, vol.shape, 0.5 - 2) / (2 * cell.min())
+            vol = np.minimum(vol, ramp.astype(vol.dtype))
         v, f, _, _ = marching_cubes(vol, 0.5, spacing=tuple(cell))
         v = v + lo + cell * (0.5 - 2)
         f = f[:, ::-1]                     # skimage winds inward for a solid above the level
         if len(f) > max_triangles:
             v, f = _decimate(v, f, max_triangles)
+        if support is not None:            # what decimation moved under the plane goes back onto it
+            h = support.height(v)
+            v = v - np.minimum(h, 0.0)[:, None] * support.normal
         tm = _trimesh(v, f)
         if tm.is_watertight and len(f) <= max_triangles:
             if tm.volume < 0:
@@ -151,10 +203,16 @@ def convex_hull(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(h.vertices, float), np.asarray(h.faces, np.int64)
 
 
-def _finish(v_board: np.ndarray, f: np.ndarray, T: np.ndarray, method: str, note: str) -> ProxyMesh:
+def _finish(v_board: np.ndarray, f: np.ndarray, T: np.ndarray, method: str, note: str,
+            support: SupportPlane | None = None) -> ProxyMesh:
+    base = None
+    if support is not None:
+        base = max(float(support.height(v_board).min()), 0.0)
+        note += ("; cut at the board plane, its base resting on it" if base < 1e-4 else
+                 f"; {base * 1000:.0f} mm above the board plane (nothing to cut)")
     v = transform_points(T, v_board)
     hv, hf = convex_hull(v)
-    return ProxyMesh(v, f, hv, hf, method, note)
+    return ProxyMesh(v, f, hv, hf, method, note, base)
 
 
 # --------------------------------------------------------------------------- static: density grid
@@ -173,8 +231,10 @@ def density_level(sigma: np.ndarray) -> float:
     return 0.5 * float(np.median(pos[pos > t]))
 
 
-def static_proxy(density_grid: Path, T: np.ndarray, max_triangles: int = MAX_TRIANGLES) -> ProxyMesh:
-    """Proxy of a static run from its ``density_grid.npz`` (sigma[x, y, z], bbox_min, bbox_max)."""
+def static_proxy(density_grid: Path, T: np.ndarray, max_triangles: int = MAX_TRIANGLES,
+                 support: SupportPlane | None = None) -> ProxyMesh:
+    """Proxy of a static run from its ``density_grid.npz`` (sigma[x, y, z], bbox_min, bbox_max),
+    cut by the ``support`` plane if given."""
     try:
         g = np.load(Path(density_grid))
         sigma = g["sigma"].astype(np.float32)
@@ -182,20 +242,25 @@ def static_proxy(density_grid: Path, T: np.ndarray, max_triangles: int = MAX_TRI
     except (OSError, KeyError, ValueError) as e:
         raise DbbError(f"cannot read the density grid {density_grid}: {e}") from None
     level = density_level(sigma)
-    v, f = occupancy_mesh(sigma > level, lo, hi, max_triangles)
+    v, f = occupancy_mesh(sigma > level, lo, hi, max_triangles, support)
     return _finish(v, f, T, "marching cubes",
                    f"density grid {sigma.shape[0]}^3 at {level:.4g} per metre (half the interior median); "
-                   "largest part, cavities filled, decimated with open3d")
+                   "largest part, cavities filled, decimated with open3d", support)
 
 
 # --------------------------------------------------------------------------- dynamic: visual hull
-def sphere_proxy(radius: float, T: np.ndarray, center: np.ndarray, note: str) -> ProxyMesh:
-    """An icosphere of ``radius`` metres at the object centre (in bundle space: the origin)."""
+def sphere_proxy(radius: float, T: np.ndarray, center: np.ndarray, note: str,
+                 support: SupportPlane | None = None) -> ProxyMesh:
+    """An icosphere of ``radius`` metres at the object centre (in bundle space: the origin); with
+    a ``support`` plane under the centre, its part below the plane is pressed flat onto it (the
+    sphere is convex: the flattened cap is the cut's base, closed as it was)."""
     import trimesh
 
     s = trimesh.creation.icosphere(subdivisions=3, radius=float(radius))
     v_board = transform_points(np.linalg.inv(T), np.asarray(s.vertices))
-    return _finish(v_board, np.asarray(s.faces, np.int64), T, "sphere", note)
+    if support is not None and support.height(np.asarray(center, float)) > 0:
+        v_board = v_board - np.minimum(support.height(v_board), 0.0)[:, None] * support.normal
+    return _finish(v_board, np.asarray(s.faces, np.int64), T, "sphere", note, support)
 
 
 def _view_spread_deg(dirs: np.ndarray) -> float:
@@ -220,12 +285,14 @@ def _project(P: np.ndarray, c2w: np.ndarray, intr) -> np.ndarray:
 
 def dynamic_proxy(crops_json: Path, center: np.ndarray, radius: float, T: np.ndarray, res: int = 64,
                   agree: float = 0.9, max_views: int = 80, min_spread_deg: float = 30.0,
-                  max_triangles: int = MAX_TRIANGLES) -> ProxyMesh:
-    """Visual hull of a crops.json dataset's mattes over the object sphere, else a sphere.
+                  max_triangles: int = MAX_TRIANGLES, support: SupportPlane | None = None) -> ProxyMesh:
+    """Visual hull of a crops.json dataset's mattes over the object sphere, else a sphere; either
+    cut by the ``support`` plane if given.
 
     A voxel of the ``res``^3 grid over the sphere's cube stays when its centre falls inside the
     matte (alpha > 0.5) in at least ``agree`` of the views that see it; a moving object thus
-    keeps what it occupies most of the time.
+    keeps what it occupies most of the time. (Views from above cannot carve under the object:
+    the hull reaches down to the sphere, and the support plane cuts it at the table.)
     """
     from ..datasets.images import load_rgba
     from ..datasets.transforms import load_dataset
@@ -234,7 +301,7 @@ def dynamic_proxy(crops_json: Path, center: np.ndarray, radius: float, T: np.nda
     try:
         ds = load_dataset(Path(crops_json))
     except DbbError as e:
-        return sphere_proxy(radius, T, center, f"sphere of the object radius: dataset unreadable ({e})")
+        return sphere_proxy(radius, T, center, f"sphere of the object radius: dataset unreadable ({e})", support)
     frames = ds.frames[:: max(1, math.ceil(len(ds.frames) / max_views))]
     ax = center[None] + ((np.arange(res) + 0.5) / res * 2 - 1)[:, None] * radius
     P = np.stack(np.meshgrid(ax[:, 0], ax[:, 1], ax[:, 2], indexing="ij"), -1).reshape(-1, 3)
@@ -268,14 +335,16 @@ def dynamic_proxy(crops_json: Path, center: np.ndarray, radius: float, T: np.nda
         why = "carving left nothing"
     if why is None:
         try:
-            v, f = occupancy_mesh(keep.reshape(res, res, res), center - radius, center + radius, max_triangles)
+            v, f = occupancy_mesh(keep.reshape(res, res, res), center - radius, center + radius, max_triangles,
+                                  support)
         except DbbError as e:
             why = str(e)
         else:
             return _finish(v, f, T, "visual hull",
                            f"carved from {len(frames)} crop mattes over {spread:.0f} degrees of views, "
-                           f"{res}^3 voxels, kept where inside in >= {agree:.0%} of views")
-    return sphere_proxy(max(r_eq, 1e-3), T, center, f"sphere of the mattes' mean area: visual hull failed ({why})")
+                           f"{res}^3 voxels, kept where inside in >= {agree:.0%} of views", support)
+    return sphere_proxy(max(r_eq, 1e-3), T, center, f"sphere of the mattes' mean area: visual hull failed ({why})",
+                        support)
 
 
 # --------------------------------------------------------------------------- glTF

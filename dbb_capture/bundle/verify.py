@@ -14,6 +14,7 @@ from .proxy import read_glb
 from .render import DynamicRenderer, StaticRenderer, read_rgba
 
 CHECK_PSNR_DB = 35.0        # verify: a fresh render must match the stored preview this closely
+SUPPORT_TOLERANCE_M = 1e-3  # verify: the proxy may reach this far under its support plane (float32 glTF)
 
 
 def verify_bundle(path: Path) -> list[str]:
@@ -48,7 +49,16 @@ def verify_bundle(path: Path) -> list[str]:
         names = sorted(meshes)
         if not any(n.endswith("-colonly") for n in names) or not any(n.endswith("-convcolonly") for n in names):
             raise DbbError(f"{path}: proxy mesh lacks its -colonly / -convcolonly nodes (has {names})")
-        done.append(f"proxy mesh: nodes {', '.join(names)}")
+        line = f"proxy mesh: nodes {', '.join(names)}"
+        if m.support is not None:             # bundles from before the support plane have none
+            point, normal = m.support
+            low = min(float(((np.asarray(t.vertices) - point) @ normal).min()) for t in meshes.values())
+            if low < -SUPPORT_TOLERANCE_M:
+                raise DbbError(f"{path}: the proxy mesh reaches {-low * 1000:.1f} mm under its support plane "
+                               f"(the table; allowed {SUPPORT_TOLERANCE_M * 1000:.0f} mm)")
+            line += (f"; lowest point {max(low, 0.0) * 1000:.1f} mm above the support plane" if low > -5e-5 else
+                     f"; lowest point {-low * 1000:.1f} mm under the support plane")
+        done.append(line)
         pv = m.previews
         sheet = read_rgba(b.file(pv["sheet"]["file"]))
         cols, S = int(pv["sheet"]["columns"]), int(pv["cell_px"])

@@ -22,3 +22,8 @@ def ssim(pred: np.ndarray, truth: np.ndarray) -> float:
     from skimage.metrics import structural_similarity
 
     return float(structural_similarity(pred, truth, channel_axis=-1, data_range=1.0))
+
+
+def rms_levels(psnr_db: float) -> float:
+    """The RMS error, in 8-bit levels (of 255), that a PSNR (dB, values in [0, 1]) stands for."""
+    return 255.0 * 10 ** (-float(psnr_db) / 20)

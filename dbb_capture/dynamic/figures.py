@@ -1,6 +1,7 @@
 """The run report's figures: ``plots.png`` (per-step PSNR/SSIM, still-view motion energy, training
 losses), ``strip.png`` (a held-out window: truth / prediction / near) and ``rollout.png`` (every
-10th frame of a long rollout at a still viewpoint, over its truth when known)."""
+10th frame of a long rollout at a still viewpoint, over its truth when known); the strips' frames
+at least 256 px, rows and steps named in the image."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ..core.images import upscale_nearest, with_header, with_row_labels
 from .evaluate import EvalReport
 
 
@@ -52,14 +54,22 @@ def write_figures(report: EvalReport, figs: dict, history: list[dict], folder: P
 
     # Strip: one held-out window, rows truth / model / near, on a grey checker (alpha visible).
     truth, m = figs["truth"], figs["methods"]
-    cv2.imwrite(str(folder / "strip.png"), _grid([truth[0, 1:], m["model"][0], m["near"][0]]))
+    steps = [f"step {k}" for k in range(1, truth.shape[1])]
+    cv2.imwrite(str(folder / "strip.png"), strip_image([truth[0, 1:], m["model"][0], m["near"][0]],
+                                                 ["truth", "prediction", "near (training)"], steps))
     long = figs["long"][0][::10]
     rows = [long] + ([figs["still_truth"][1::10][:len(long)]] if figs["still_truth"] is not None else [])
-    cv2.imwrite(str(folder / "rollout.png"), _grid(rows))
+    cv2.imwrite(str(folder / "rollout.png"), strip_image(rows, ["prediction", "truth"][:len(rows)],
+                                                   [f"step {1 + 10 * k}" for k in range(len(long))]))
 
 
-def _grid(rows: list[np.ndarray]) -> np.ndarray:
-    """Rows of premultiplied RGBA frames (n, S, S, 4) over a checkerboard -> BGR uint8 image."""
+FIGURE_PX = 256      # frames in the strips are shown at least this large (repeated pixels)
+
+
+def strip_image(rows: list[np.ndarray], row_labels: list[str], col_labels: list[str],
+          min_px: int = FIGURE_PX) -> np.ndarray:
+    """Rows of premultiplied RGBA frames (n, S, S, 4) over a checkerboard, each frame enlarged to
+    at least ``min_px`` (nearest), rows and columns named -> BGR uint8 image."""
     S = rows[0].shape[1]
     n = max(len(r) for r in rows)
     yy, xx = np.mgrid[:S, :S]
@@ -68,4 +78,7 @@ def _grid(rows: list[np.ndarray]) -> np.ndarray:
     for i, r in enumerate(rows):
         for j, f in enumerate(r):
             out[i * (S + 2):i * (S + 2) + S, j * (S + 2):j * (S + 2) + S] = f[..., :3] + (1 - f[..., 3:4]) * bg
-    return np.round(out[..., ::-1].clip(0, 1) * 255).astype(np.uint8)
+    img = upscale_nearest(np.round(out[..., ::-1].clip(0, 1) * 255).astype(np.uint8), min_px, side=S)
+    k = img.shape[0] // out.shape[0]
+    img = with_row_labels(img, row_labels, [k * (S + 2)] * len(rows))
+    return with_header(img, [""] + col_labels, [110] + [k * (S + 2)] * n)

@@ -22,7 +22,7 @@ from ..core.outputs import (
     training_minutes,
     write_json,
 )
-from ..core.progress import progress
+from ..core.progress import console, progress, resumed_line
 from .config import RssmConfig, TrainConfig, leak_at_frame_rate
 from .data import SequenceData, load_sequences
 from .evaluate import RUN_TEMPERATURE, EvalReport, calibrate_temperature, evaluate
@@ -57,8 +57,12 @@ def train_run(dataset: Path, out: Path, cfg: RssmConfig, tcfg: TrainConfig, resu
     ckpt = work / "checkpoint.pt"
     state = None
     if resume:
-        state = TrainState.load(resume_checkpoint(out), tcfg, device)
+        src = resume_checkpoint(out)
+        state = TrainState.load(src, tcfg, device)
         cfg = state.model.cfg
+        if not quiet:
+            console.print(resumed_line(state.step, state.seconds, tcfg.steps, tcfg.minutes, src,
+                                       src.parent == work), markup=False)
     cfg.validate()
     tcfg.validate()
     data = load_sequences(dataset, cfg.size)
@@ -67,7 +71,7 @@ def train_run(dataset: Path, out: Path, cfg: RssmConfig, tcfg: TrainConfig, resu
         state = TrainState.new(Rssm(leak_at_frame_rate(cfg, data.fps())).to(device), tcfg)
     work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    with progress() as prog:
+    with progress(disable=quiet) as prog:
         task = prog.add_task("train rssm", total=100, info="")
 
         def on_step(st: TrainState, parts: dict | None) -> None:

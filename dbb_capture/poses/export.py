@@ -177,9 +177,11 @@ def pose_report(run: PoseRun, board: BoardSpec) -> dict:
     return report
 
 
-def plot_camera_path(run: PoseRun, board: BoardSpec, path: Path) -> None:
+def plot_camera_path(run: PoseRun, board: BoardSpec, path: Path,
+                     sphere: tuple[np.ndarray, float] | None = None, sphere_label: str = "object sphere") -> None:
     """PNG: the board outline, the posed camera centres coloured by time and their viewing
-    directions, seen from above and from the side."""
+    directions, and the object ``sphere`` (centre (3,), radius, board frame, metres) if known,
+    seen from above and from the side."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -198,10 +200,14 @@ def plot_camera_path(run: PoseRun, board: BoardSpec, path: Path) -> None:
             ax.plot(outline[:, 0], outline[:, 1], "k-", lw=2, label="board")
         else:
             ax.plot([0, bw], [0, 0], "k-", lw=3, label="board")
-        sc = ax.scatter(C[:, a], C[:, b], c=t, cmap="viridis", s=12)
+        if sphere is not None:                     # a sphere looks like a circle from any side
+            ax.add_patch(plt.Circle((sphere[0][a], sphere[0][b]), sphere[1], color="tab:red", alpha=0.35,
+                                    label=sphere_label))
+        sc = ax.scatter(C[:, a], C[:, b], c=t, cmap="viridis", s=12, label="camera centres")
         ax.quiver(C[:, a], C[:, b], D[:, a] * scale, D[:, b] * scale, angles="xy",
                   scale_units="xy", scale=1, width=0.002, color="gray")
         ax.set_title(title)
+        ax.legend(loc="best", fontsize=8)
         ax.set_aspect("equal", adjustable="datalim")
         ax.set_xlabel("x (m)")
         ax.set_ylabel("y (m)" if b == 1 else "z (m)")

@@ -21,6 +21,7 @@ from ..crops.object import matte_scale
 from ..datasets.records import estimate_volume
 from ..geometry.cameras import Intrinsics, project_points
 from ..geometry.viewpoint import up_from_cameras
+from ..poses.export import plot_camera_path
 from ..poses.run import estimate_poses
 from .inputs import PreprocessConfig, StageContext
 from .pose_stage import PosesOutput
@@ -107,6 +108,9 @@ def background_stage(ctx: StageContext, poses: PosesOutput) -> BackgroundOutput:
     """Train the room's field; writes background/field.pt and background/report.json."""
     inp, cfg = ctx.inputs, ctx.cfg
     sphere = object_sphere(ctx, poses)
+    if sphere.source != "object.json":               # the poses stage drew the path without it
+        plot_camera_path(poses.run, inp.board, ctx.out / "poses" / "camera_path.png",
+                         (sphere.center, sphere.radius), "object sphere (estimated)")
     intr = poses.run.intrinsics                      # of the footage as filmed (distortion included)
     plate = inp.background if cfg.use_clean_plate else None
     folder = ctx.out / "background"

@@ -39,7 +39,7 @@ from ..geometry.cameras import Intrinsics
 from .background_stage import BackgroundOutput, ObjectSphere
 from .inputs import StageContext
 from .pose_stage import POINT_CLOUD, write_frames
-from .report import dataset_stats, sheet_frame, sheet_tiles
+from .report import contact_sheet, dataset_stats, sheet_frame, sheet_tiles
 
 
 @dataclass(frozen=True)
@@ -304,6 +304,7 @@ def crops_stage(ctx: StageContext, bg: BackgroundOutput) -> CropsOutput:
               for p, sp, r in zip(posed, splits, results)]
     coverage = [r.coverage for r in results]
     sheet_rows = [r.sheet_row for r in results if r.sheet_row is not None]
+    sheet_names = [p.name for p, r in zip(posed, results) if r.sheet_row is not None]
     windows = sequence_windows(np.array([f.time for f in frames]), splits, cfg.sequence_length)
     write_crops(out / "crops.json", frames, sphere.center, sphere.radius, sphere.up, cfg.crop_size, cfg.crop_fill,
                 cfg.sequence_length, windows,
@@ -313,7 +314,7 @@ def crops_stage(ctx: StageContext, bg: BackgroundOutput) -> CropsOutput:
     write_frames(out / "transforms.json", [replace(im, mask_path=out / "masks" / f"{im.name}.png")
                                            for im in poses.images], poses.up)
     if sheet_rows:
-        write_image(out / "contact_sheet.png", cv2.cvtColor(np.concatenate(sheet_rows, 0), cv2.COLOR_RGB2BGR))
+        write_image(out / "contact_sheet.png", cv2.cvtColor(contact_sheet(sheet_rows, sheet_names), cv2.COLOR_RGB2BGR))
     touched = [f.name for f in frames if f.touches_border]
     if touched:
         ctx.notes.append(f"{len(touched)} crops reach past the frame's border (padded transparent, flagged "

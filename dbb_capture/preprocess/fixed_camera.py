@@ -20,7 +20,7 @@ from ..datasets.transforms import write_crops
 from ..geometry.cameras import Intrinsics
 from .crop_stage import CropsOutput
 from .inputs import StageContext
-from .report import sequence_counts, sheet_row
+from .report import contact_sheet, sequence_counts, sheet_row
 
 FIXED_HFOV_DEG = 60.0  # nominal field of view given to footage without a board (no metric camera)
 
@@ -86,7 +86,7 @@ def fixed_camera_stage(ctx: StageContext, _previous: Any = None) -> CropsOutput:
         radius = float(np.sin(np.arctan(side * cfg.crop_fill / 2 / f_src)))
         (out / "crops").mkdir()
         splits = split_by_time(np.array([info.times[i] for i in indices]), cfg.test_fraction)
-        frames, coverage, sheet, prev = [], [], [], None
+        frames, coverage, sheet, sheet_names, prev = [], [], [], [], None
         full = np.ones((size, size), bool)
         task = prog.add_task("matte and crop", total=len(indices), info="")
         sheet_at = set(np.linspace(0, len(indices) - 1, min(8, len(indices))).round().astype(int).tolist())
@@ -105,6 +105,7 @@ def fixed_camera_stage(ctx: StageContext, _previous: Any = None) -> CropsOutput:
             if k in sheet_at:
                 oc = ObjectCrop(cam, obs, pred, rgba, touches)
                 sheet.append(sheet_row(f.image, None, None, None, oc, prev, window=(x, y, side)))
+                sheet_names.append(f.name)
             prev = rgba
             prog.advance(task)
     windows = sequence_windows(np.array([f.time for f in frames]), splits, cfg.sequence_length)
@@ -115,7 +116,7 @@ def fixed_camera_stage(ctx: StageContext, _previous: Any = None) -> CropsOutput:
     write_crops(out / "crops.json", frames, center, radius, up, size, cfg.crop_fill, cfg.sequence_length, windows,
                 {"note": note, "fixed_camera": {"window": [x, y, side], "hfov_deg": FIXED_HFOV_DEG}})
     if sheet:
-        write_image(out / "contact_sheet.png", cv2.cvtColor(np.concatenate(sheet, 0), cv2.COLOR_RGB2BGR))
+        write_image(out / "contact_sheet.png", cv2.cvtColor(contact_sheet(sheet, sheet_names), cv2.COLOR_RGB2BGR))
     stats = {"mode": "fixed camera", "frames_in_footage": info.n_frames, "crops": len(frames),
              "train": int(sum(f.split == "train" for f in frames)), "test": int(sum(f.split == "test" for f in frames)),
              "sequences": sequence_counts(windows, cfg.sequence_length),

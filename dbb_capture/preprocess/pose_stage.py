@@ -3,6 +3,7 @@ model and the pose report (:mod:`..poses`)."""
 
 from __future__ import annotations
 
+import json
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -86,8 +87,8 @@ def poses_stage(ctx: StageContext, _previous: Any = None) -> PosesOutput:
     write_json(out / "camera.json", cam)
     write_colmap(out / "colmap" / "sparse" / "0", intr, images, out / "images", points)
     write_json(out / "poses" / "report.json", pose_report(run, inp.board))
-    plot_camera_path(run, inp.board, out / "poses" / "camera_path.png")
     write_json(out / "board.json", inp.board.to_json())
+    plot_camera_path(run, inp.board, out / "poses" / "camera_path.png", _sphere_of(inp.object_json))
     if inp.object_json is not None:
         shutil.copyfile(inp.object_json, out / "object.json")
     else:
@@ -100,6 +101,17 @@ def poses_stage(ctx: StageContext, _previous: Any = None) -> PosesOutput:
         ctx.notes.append(f"{len(skipped)} of {len(run.frames)} frames skipped: " + "; ".join(
             f"{k} ({len(v)}: {', '.join(v[:6])}{' ...' if len(v) > 6 else ''})" for k, v in sorted(why.items())))
     return PosesOutput(out / "transforms.json", intr, tuple(images), up, run)
+
+
+def _sphere_of(object_json: Path | None) -> tuple[np.ndarray, float] | None:
+    """The sphere of an ``object.json`` for the camera-path plot, None where there is none yet
+    (the background stage checks the file and draws an estimated sphere)."""
+    try:
+        d = json.loads(Path(object_json).read_text()) if object_json is not None else None
+        c, r = np.asarray(d["center"], float).reshape(3), float(d["radius"])
+    except (OSError, TypeError, KeyError, ValueError):
+        return None
+    return (c, r) if np.all(np.isfinite(c)) and np.isfinite(r) and r > 0 else None
 
 
 def write_frames(path: Path, frames: list[Frame], up: tuple[float, float, float]) -> None:

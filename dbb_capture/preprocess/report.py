@@ -1,4 +1,5 @@
-"""What a dataset says of itself: ``dataset.json``'s statistics and the contact sheet's rows."""
+"""What a dataset says of itself: ``dataset.json``'s statistics and the contact sheet (its rows,
+and the sheet with its columns and frames named)."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from ..core.images import with_header, with_row_labels
 from ..crops.object import ObjectCrop, on_checker, temporal_difference
 from ..datasets.records import Frame
 from ..geometry.cameras import Intrinsics, project_points
@@ -50,6 +52,20 @@ def sheet_tiles(small: np.ndarray, oc: ObjectCrop, prev: np.ndarray | None, cell
     return np.concatenate([small] + tiles, 1)
 
 
+SHEET_COLUMNS = ("frame and crop window", "observed crop", "predicted room", "alpha", "RGBA crop",
+                 "change from previous")
+
+
+def contact_sheet(rows: list[np.ndarray], names: list[str], cell: int = 128) -> np.ndarray:
+    """The contact sheet (RGB uint8): :func:`sheet_tiles` rows under a band naming the columns,
+    each row named by its frame."""
+    sheet = np.concatenate(rows, 0)
+    heights = [r.shape[0] for r in rows]
+    sheet = with_row_labels(sheet, list(names), heights, width=90)
+    frame_w = rows[0].shape[1] - (len(SHEET_COLUMNS) - 1) * cell
+    return with_header(sheet, ["frame"] + list(SHEET_COLUMNS), [90, frame_w] + [cell] * (len(SHEET_COLUMNS) - 1))
+
+
 def dataset_stats(frames: list[Frame], windows: list[tuple[int, str]], cfg: PreprocessConfig, sphere: ObjectSphere,
                   poses: PosesOutput, bg: BackgroundOutput, coverage: list[float]) -> dict:
     """Summary statistics of the dataset (``dataset.json``): crops ``frames``, sequence
@@ -61,7 +77,8 @@ def dataset_stats(frames: list[Frame], windows: list[tuple[int, str]], cfg: Prep
 
     times = [round(f.time, 6) for f in frames]
     return {
-        "frames_in_footage": poses.run.frames_in_footage, "frames_sampled": len(poses.run.frames),
+        "frames_in_footage": poses.run.frames_in_footage, "frames_announced": poses.run.frames_announced,
+        "frames_decoded": poses.run.frames_decoded, "frames_sampled": len(poses.run.frames),
         "frames_posed": len(poses.images), "crops": len(frames),
         "train": sum(f.split == "train" for f in frames), "test": sum(f.split == "test" for f in frames),
         "sequences": sequence_counts(windows, cfg.sequence_length),

@@ -94,10 +94,19 @@ class Served:
                 "scene_from_bundle": p.scene_from_bundle.tolist(),
                 "position": list(p.position), "yaw_deg": p.yaw_deg, "scale": p.scale,
                 "radius_m": self.manifest.radius * p.scale,
+                "support_y": self.support_y(),
                 "canvas_size_m": float(self.manifest.canvas["size_m"]) * p.scale,
                 "proxy_url": f"/objects/{self.index}/proxy.glb",
                 "fps": self.fps if self.manifest.kind == "dynamic" else None,
                 "frame_size": int(self.manifest.inputs["frame_size"]) if self.manifest.kind == "dynamic" else None}
+
+    def support_y(self) -> float | None:
+        """Scene height (metres) of the plane the object stood on (its bundle's support plane; the
+        placement turns only about +Y, so the plane stays level), None if the bundle has none."""
+        s = self.manifest.support
+        if s is None:
+            return None
+        return float((self.placement.scene_from_bundle @ np.append(s[0], 1.0))[1])
 
     def board_eye(self, c2w_scene_gl: np.ndarray) -> np.ndarray:
         """The camera centre (3,) in this object's board frame."""

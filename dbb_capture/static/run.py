@@ -33,6 +33,7 @@ import torch
 
 from ..core.device import pick_device
 from ..core.errors import DbbError
+from ..core.images import to_u8, upscale_nearest, with_header
 from ..core.metrics import psnr_from_mse
 from ..core.outputs import (
     atomic_dir,
@@ -45,7 +46,7 @@ from ..core.outputs import (
     write_bytes_atomic,
     write_json,
 )
-from ..core.progress import progress
+from ..core.progress import console, progress, resumed_line
 from ..datasets.records import (
     Frame,
     ObjectVolume,
@@ -282,10 +283,14 @@ def train_run(dataset: Path, out: Path, cfg: RunConfig, field_cfg: FieldConfig |
     ckpt = work / CHECKPOINT_FILE
     state = None
     if resume:
-        state = TrainState.load(resume_checkpoint(out, CHECKPOINT_FILE), device)
+        src = resume_checkpoint(out, CHECKPOINT_FILE)
+        state = TrainState.load(src, device)
         volume = state.field.volume
         mode = state.field.cfg.mode
         _refuse_other_field(replace(field_cfg or FieldConfig(), mode=cfg.mode), state.field.cfg, resume_asks)
+        if not quiet:
+            console.print(resumed_line(state.step, state.seconds, cfg.steps, cfg.minutes, src,
+                                       src.parent == run_work_dir(out)), markup=False)
     fcfg = field_cfg or FieldConfig()
     fcfg = replace(fcfg, mode=mode).for_dataset(ds.kind)
     if fcfg.res_max is None:
@@ -300,7 +305,7 @@ def train_run(dataset: Path, out: Path, cfg: RunConfig, field_cfg: FieldConfig |
     work.mkdir(parents=True, exist_ok=True)
     budget = Budget(cfg.minutes, cfg.steps)
     t0 = time.perf_counter()
-    with progress() as prog:
+    with progress(disable=quiet) as prog:
         task = prog.add_task("train field", total=100, info="")
 
         def on_step(st: TrainState, p: float) -> None:
@@ -400,10 +405,11 @@ def write_report(state: TrainState, tree: PlenOctree, frames: list[Frame], cfg: 
                      "psnr_tree_white": psnr_from_mse(float(((img_tree - gt) ** 2).mean())),
                      "psnr_field_white": psnr_from_mse(float(((img_field - gt) ** 2).mean()))})
         # A scene's tree holds only the inner sphere: show the whole field beside the truth.
-        shown = img_field if state.field.cfg.mode == "scene" else img_tree
-        side = np.concatenate([shown, gt], 1)
-        cv2.imwrite(str(folder / f"heldout_{f.name}.png"),
-                    cv2.cvtColor((np.clip(side, 0, 1) * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR))
+        scene = state.field.cfg.mode == "scene"
+        p = rows[-1]["psnr_field_white" if scene else "psnr_tree_white"]
+        cv2.imwrite(str(folder / f"heldout_{f.name}.png"), cv2.cvtColor(
+            truth_and_render(gt, img_field if scene else img_tree, f"render ({'field' if scene else 'tree'}), "
+                             f"{p:.1f} dB"), cv2.COLOR_RGB2BGR))
     metrics = {"views": "held-out" if heldout else "training (no held-out frames)",
                "per_view": rows}
     if rows:
@@ -411,6 +417,19 @@ def write_report(state: TrainState, tree: PlenOctree, frames: list[Frame], cfg: 
         metrics["mean_psnr_field_white"] = float(np.mean([r["psnr_field_white"] for r in rows]))
     (folder / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
     return metrics
+
+
+REPORT_VIEW_PX = 256     # held-out views in the report are shown at least this large (repeated pixels)
+
+
+def truth_and_render(truth: np.ndarray, render: np.ndarray, label: str = "render") -> np.ndarray:
+    """The report's picture of one view: ``truth`` | ``render`` (each (H, W, 3) float RGB in [0, 1]),
+    enlarged to at least :data:`REPORT_VIEW_PX` with repeated pixels, under a band naming each ->
+    uint8 RGB."""
+    side = to_u8(np.concatenate([truth, render], 1))
+    big = upscale_nearest(side, REPORT_VIEW_PX, side=min(truth.shape[:2]))
+    w = big.shape[1] // 2
+    return with_header(big, ["truth", label], [w, big.shape[1] - w])
 
 
 def evaluate_views(renderer: TreeRenderer, frames: list[Frame], downscale: float,

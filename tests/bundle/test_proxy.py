@@ -102,3 +102,41 @@ def test_glb_passes_the_khronos_validator_without_a_hint(tmp_path):
     write_glb(tmp_path / "proxy.glb", static_proxy(tmp_path / "density_grid.npz", T), "toy")
     (report,) = gltf_reports(tmp_path / "proxy.glb")
     assert (report["errors"], report["warnings"], report["infos"], report["hints"]) == (0, 0, 0, 0), report
+
+
+def test_the_proxy_is_cut_at_the_board_plane_and_rests_on_it(tmp_path):
+    """An object whose sphere reaches 15 mm under the table (as the static sample's does): the
+    proxy's base lies on the board plane, closed, and valid glTF; a sphere proxy is flattened too."""
+    import trimesh
+
+    from dbb_capture.bundle.proxy import SupportPlane
+
+    up = np.array([0, 0, -1.0])
+    center = (0.3, 0.1, -0.085)                                     # 85 mm above the board
+    q, lo, hi = _ellipsoid_grid(radii=(0.06, 0.04, 0.1), center=center)
+    sigma = np.where(q > 1.6, 0.0, 60.0 / (1 + np.exp((q - 1) * 12)))
+    np.savez_compressed(tmp_path / "density_grid.npz", sigma=sigma.astype(np.float16), bbox_min=lo, bbox_max=hi)
+    T = bundle_from_board(np.asarray(center), up)
+    support = SupportPlane.board(up)
+    plane = support.in_bundle(T)
+    assert plane["normal"] == [0.0, 1.0, 0.0] and plane["point"] == pytest.approx([0.0, -0.085, 0.0])
+    floor_y = plane["point"][1]
+    uncut = static_proxy(tmp_path / "density_grid.npz", T)
+    assert uncut.vertices[:, 1].min() - floor_y < -0.012            # reaches under the table
+    p = static_proxy(tmp_path / "density_grid.npz", T, support=support)
+    assert abs(p.vertices[:, 1].min() - floor_y) < 1e-3 and p.base_m == 0.0
+    assert p.watertight and len(p.faces) <= MAX_TRIANGLES and "cut at the board plane" in p.note
+    assert abs(p.hull_vertices[:, 1].min() - floor_y) < 1e-3
+    base = p.vertices[np.abs(p.vertices[:, 1] - floor_y) < 1e-4]     # a flat base, about the cut's 63 mm
+    assert 0.05 < np.ptp(base[:, 0]) < 0.064
+    # Volume: the ellipsoid less its cap under the table (a cap of 0.15 of the height: 6.1 % of it).
+    full = 4 / 3 * math.pi * 0.06 * 0.04 * 0.1
+    assert trimesh.Trimesh(p.vertices, p.faces).volume == pytest.approx(full * (1 - 0.0607), rel=0.06)
+    s = sphere_proxy(0.1, T, np.asarray(center), "sphere", support)
+    assert s.watertight and abs(s.vertices[:, 1].min() - floor_y) < 1e-9 and s.vertices[:, 1].max() == pytest.approx(0.1)
+    write_glb(tmp_path / "cut.glb", p, "toy")
+    write_glb(tmp_path / "sphere.glb", s, "toy")
+    for r in gltf_reports(tmp_path / "cut.glb", tmp_path / "sphere.glb"):
+        assert (r["errors"], r["warnings"], r["infos"], r["hints"]) == (0, 0, 0, 0), r
+    col = read_glb(tmp_path / "cut.glb")["toy-colonly"]             # as an engine reads it (float32)
+    assert col.is_watertight and abs(col.bounds[0][1] - floor_y) < 1e-3

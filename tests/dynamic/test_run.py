@@ -29,6 +29,7 @@ def test_run_folder_cli_resume_and_eval(crops, tmp_path):
                                       "--batch", "2", "--threads", "1"])
     assert r.exit_code == 0, r.output
     assert "open-loop PSNR" in r.output and "run-time temperature" in r.output
+    assert "dB against copying the first frame and " in r.output and "(1 is right, 0 frozen)" in r.output
     for f in ("run.json", "model.pt", "stepper.ts", "checkpoint.pt", "report/eval.json", "report/plots.png",
               "report/strip.png", "report/rollout.png"):
         assert (out / f).is_file(), f
@@ -80,6 +81,7 @@ def test_settings_presets_and_resumed_settings_on_the_command_line(crops, tmp_pa
     r = CliRunner().invoke(cli.main, ["rssm", str(crops.root), "-o", str(acc), "--steps", "3",
                                       "--batch", "3", "--threads", "1", "--resume"])
     assert r.exit_code == 0, r.output
+    assert "resumed from step 2 of 3, " in r.output and "(checkpoint of the finished run: " in r.output, r.output
     _cfg, tcfg = resume_configs(acc)
     assert tcfg.augment == "none" and tcfg.batch == 3 and tcfg.steps == 3
     assert RunRecord.read(acc).training.steps == 3

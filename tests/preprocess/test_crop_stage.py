@@ -10,6 +10,7 @@ from click.testing import CliRunner
 from conftest import UP, ring_cameras, small_intrinsics
 from dbb_capture.cli.capture import main
 
+from dbb_capture.core.images import LABEL_PX
 from dbb_capture.crops.camera import crop_camera
 
 
@@ -38,6 +39,12 @@ def test_preprocess_writes_crops_dataset(plate_capture, tmp_path):
     assert json.loads((ds / "background" / "report.json").read_text())["train_px"] >= 64
     assert stats["sequences"]["train"] > 0
     assert (ds / "contact_sheet.png").stat().st_size > 10_000 and (ds / "background" / "field.pt").is_file()
+    # The sheet names its columns (a band on top) and each row's frame (a column on the left).
+    sheet = cv2.imread(str(ds / "contact_sheet.png"))
+    band, names = sheet[:LABEL_PX], sheet[LABEL_PX:, :90]
+    x = np.cumsum([90, sheet.shape[1] - 90 - 5 * 128] + [128] * 5)
+    assert all((band[:, a + 2:b - 2] > 200).any() for a, b in zip(x[:-1], x[1:]))      # text in every column
+    assert all((names[i * 128:(i + 1) * 128] > 200).any() for i in range((sheet.shape[0] - LABEL_PX) // 128))
     assert not (ds / "matte_scratch").exists()          # the matte's second pass cleans up after itself
     assert json.loads((ds / "preprocess.json").read_text())["stages_run"] == ["poses", "background", "crops"]
 

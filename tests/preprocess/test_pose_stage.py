@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from click.testing import CliRunner
@@ -76,6 +77,10 @@ def test_preprocess_stop_after_poses(distorted_capture, tmp_path):
     assert all("corners" in f and f["sharpness"] > 0 for f in report["frames"])
     assert report["frames_in_footage"] == 10
     assert (ds / "poses" / "camera_path.png").stat().st_size > 10_000
+    plot = cv2.imread(str(ds / "poses" / "camera_path.png")).astype(int)      # BGR
+    reddish = (plot[..., 2] > plot[..., 1] + 40) & (plot[..., 2] > plot[..., 0] + 40)
+    assert reddish.sum() > 200                       # the object sphere (object.json), in both views
+    assert "frames posed, the board's corners land " in res.output and "(under 1 px is good)" in res.output
     assert json.loads((ds / "preprocess.json").read_text())["stages_run"] == ["poses"]
 
 
@@ -89,6 +94,19 @@ def test_preprocess_calibrates_when_no_camera_json(distorted_capture, tmp_path):
     # Seven small views calibrate loosely; calibration accuracy is tested in test_calibrate.py.
     assert abs(cam["fx"] / true["fx"] - 1) < 0.15 and cam["rms"] < 0.5
     assert "calibrated" in json.loads((ds / "poses" / "report.json").read_text())["intrinsics_source"]
+
+
+def test_a_camera_json_that_does_not_fit_is_refused_before_the_poses(distorted_capture, tmp_path):
+    """A focal length 1.5 x wrong: one line with both figures, from a handful of views, nothing written."""
+    cam = json.loads((distorted_capture / "ground_truth" / "camera.json").read_text())
+    (tmp_path / "camera.json").write_text(json.dumps(cam | {"fx": 1.5 * cam["fx"], "fy": 1.5 * cam["fy"]}))
+    res = CliRunner().invoke(main, ["preprocess", str(distorted_capture), "-o", str(tmp_path / "ds"),
+                                    "--camera", str(tmp_path / "camera.json")])
+    lines = [ln for ln in res.output.splitlines() if ln.strip()]
+    assert res.exit_code == 2 and len(lines) == 1, res.output
+    assert "camera.json does not fit this footage: board reprojection " in lines[0]
+    assert " px with its intrinsics, " in lines[0] and "recalibrate or omit camera.json" in lines[0]
+    assert not (tmp_path / "ds").exists()
 
 
 @pytest.mark.parametrize("case", ["bad_board", "wrong_dictionary", "unknown_stage", "exists"])

@@ -66,6 +66,9 @@ def test_hello_describes_objects_and_conventions(server):
     s, d = hello["objects"]
     assert d["fps"] > 0 and s["fps"] is None and s["canvas_size_m"] > 0
     assert s["proxy_url"] == "/objects/0/proxy.glb"
+    # The table the dynamic object was filmed on (its bundle's support plane), in the scene; the
+    # static test bundle's dataset measured none.
+    assert s["support_y"] is None and -d["radius_m"] < d["support_y"] - d["position"][1] < 0
     assert "OpenGL" in hello["conventions"]["camera"]
     # Side by side along +X without overlapping.
     assert d["position"][0] - s["position"][0] >= (s["canvas_size_m"] + d["canvas_size_m"]) / 2

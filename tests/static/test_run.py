@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 
+import cv2
 import numpy as np
 import pytest
 from click.testing import CliRunner
@@ -12,9 +13,10 @@ from conftest import synthetic_object_frames
 from dbb_capture.cli.train import main
 
 from dbb_capture.core.errors import DbbError
+from dbb_capture.core.images import LABEL_PX
 from dbb_capture.datasets.transforms import missing_crops, write_transforms
 from dbb_capture.static.field import FieldConfig
-from dbb_capture.static.run import RUN_VERSION, RunRecord, for_tree_depth, load_run
+from dbb_capture.static.run import REPORT_VIEW_PX, RUN_VERSION, RunRecord, for_tree_depth, load_run
 
 
 @pytest.fixture(scope="module")
@@ -45,12 +47,20 @@ def test_cli_writes_a_self_describing_run_and_rejects_bad_input(dataset, tmp_pat
     assert loaded.tree().data_format == rec.tree.data_format == "SH9"
     for name in ("tree.npz", "density_grid.npz", "checkpoint.pt", "report/curve.png", "report/metrics.json"):
         assert (run / name).is_file(), name
+    assert "on held-out views (not trained on): renders differ from the photos by " in res.output, res.output
+    # Held-out views large enough to judge: truth | render, each at least 256 px, named on a band.
+    views = sorted((run / "report").glob("heldout_*.png"))
+    img = cv2.imread(str(views[0]))
+    assert img.shape[0] - LABEL_PX >= REPORT_VIEW_PX and img.shape[1] >= 2 * REPORT_VIEW_PX
+    half = img.shape[1] // 2
+    assert (img[:LABEL_PX, :half] > 200).any() and (img[:LABEL_PX, half:] > 200).any()
     assert loaded.density_grid_path.is_file() and loaded.checkpoint_path.is_file()
     g = np.load(run / "density_grid.npz")
     assert g["sigma"].shape == (16, 16, 16)
     assert CliRunner().invoke(main, args).exit_code == 2                     # exists, no --overwrite
     res = CliRunner().invoke(main, args + ["--resume", "--steps", "10"])      # continue the same run
     assert res.exit_code == 0, res.output
+    assert "resumed from step 8 of 10, " in res.output and "(checkpoint of the finished run: " in res.output
     assert load_run(run).record.training.steps == 10
     assert CliRunner().invoke(main, ["plenoctree", str(data / "nope"), "-o", str(tmp_path / "r2")]).exit_code == 2
     assert CliRunner().invoke(main, args[:3] + [str(tmp_path / "r5"), "--downscale", "0.5"]).exit_code == 2

@@ -172,7 +172,7 @@ function layoutScene() {
   }
   box.getCenter(sceneCentre);
   sceneRadius = Math.max(0.05, box.getSize(new THREE.Vector3()).length() / 2);
-  setFloor(Math.min(...objects.map((o) => o.info.position[1] - o.info.radius_m)));
+  setFloor(Math.min(...objects.map(standsAt)));
   const r = Math.max(2.0, 16 * sceneRadius);        // the floor fades into the background
   floor.scale.setScalar(r);
   scene.fog = new THREE.Fog(scene.background, 0.6 * r, r);
@@ -184,6 +184,13 @@ function layoutScene() {
   sc.near = 0.01;
   sc.far = 12 * sceneRadius;
   sc.updateProjectionMatrix();
+}
+
+// Where an object stands: the table it was filmed on (its bundle's support plane), else its
+// proxy's lowest point, else the bottom of its sphere.
+function standsAt(o) {
+  if (o.info.support_y != null) return o.info.support_y;
+  return o.proxy ? o.proxy.box.min.y : o.info.position[1] - o.info.radius_m;
 }
 
 function setFloor(y) {
@@ -227,8 +234,7 @@ async function loadProxy(o) {
     o.top = new THREE.Vector3(p.getX(top), p.getY(top), p.getZ(top));
     o.proxy = { shadow, wire, geom, box: geom.boundingBox.clone() };
     invalidate(true);
-    const lows = objects.filter((x) => x.proxy).map((x) => x.proxy.box.min.y);
-    setFloor(Math.min(...lows, ...objects.filter((x) => !x.proxy).map((x) => x.info.position[1] - x.info.radius_m)));
+    setFloor(Math.min(...objects.map(standsAt)));
   } catch (e) {
     state.errors.push({ type: 'proxy', object: o.info.index, message: String(e) });
     console.warn(`object ${o.info.index}: its proxy mesh could not be loaded: ${e}`);
