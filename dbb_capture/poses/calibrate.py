@@ -15,7 +15,7 @@ from ..geometry.cameras import Intrinsics
 from ..geometry.transforms import c2w_from_rvec_tvec
 from .corners import refine_xjunctions
 from .detect import Detection, DetectorConfig, detect_sampled
-from .solve import PoseConfig, corner_inliers
+from .solve import PoseConfig, corner_inliers, solve_pose
 
 
 def refine_views(source: FootageSource, dets: Sequence[Detection], board: BoardSpec,
@@ -183,6 +183,46 @@ def calibrate(dets: Sequence[Detection], board: BoardSpec, width: int, height: i
             break
     return Calibration(Intrinsics.from_matrix(width, height, K, dist), float(rms), tuple(d.name for d in views),
                        tuple(rejected), fx_std, fy_std, bool(square), terms)
+
+
+# Given intrinsics misfit the footage when their board reprojection error is this many times the
+# one a quick calibration of the same views reaches, and this many px more (docs/commands/preprocess.md).
+# Correct ones come within 1.05 x (synthetic footage with and without distortion, OpenCV's photos
+# with its own calibration); a focal length 1.5 x wrong is 5-50 x at 320-640 px.
+MISFIT_RATIO, MISFIT_PX = 3.0, 0.1
+
+
+@dataclass(frozen=True)
+class IntrinsicsFit:
+    """How well given intrinsics fit board views: the RMS reprojection error (px) of the views'
+    corners, each view posed under them (``given_rms``) and under a quick calibration of the
+    same views (``calibrated_rms``, OpenCV's, five distortion terms), over ``views`` views."""
+
+    given_rms: float
+    calibrated_rms: float
+    views: int
+
+    @property
+    def misfit(self) -> bool:
+        """Far above what the views call for: :data:`MISFIT_RATIO` x and :data:`MISFIT_PX` more."""
+        return self.given_rms > MISFIT_RATIO * self.calibrated_rms and self.given_rms - self.calibrated_rms > MISFIT_PX
+
+
+def intrinsics_fit(dets: Sequence[Detection], board: BoardSpec, intr: Intrinsics, max_views: int = 12,
+                   min_views: int = 4) -> IntrinsicsFit | None:
+    """:class:`IntrinsicsFit` of ``intr`` over the ``max_views`` most diverse of ``dets`` (those
+    OpenCV's calibration keeps); None when fewer than ``min_views`` show 8+ corners off a line."""
+    views = select_views(dets, board, intr.width, intr.height, max_views)
+    if len(views) < min_views:
+        return None
+    cal = calibrate(views, board, intr.width, intr.height, max_views, min_views, precise=False)
+    obj_all = board.chessboard_corners()
+    sq, n = 0.0, 0
+    for d in views:
+        sol = solve_pose(obj_all[d.ids], d.corners, intr) if d.name in cal.used else None
+        if sol is not None:
+            sq, n = sq + sol[1] ** 2 * d.n_corners, n + d.n_corners
+    return IntrinsicsFit(float(np.sqrt(sq / n)), cal.rms, len(cal.used)) if n else None
 
 
 def calibrate_footage(source: FootageSource, board: BoardSpec, fps: float | None = None,

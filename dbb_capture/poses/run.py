@@ -13,11 +13,11 @@ from typing import Callable
 import numpy as np
 
 from ..capture.board import BoardSpec
-from ..capture.footage import FootageSource, blurry_mask
+from ..capture.footage import FootageSource, blurry_mask, sample_indices
 from ..core.errors import DbbError
 from ..geometry.cameras import Intrinsics
-from .calibrate import ALL_DIST_TERMS, Calibration, calibrate_precise
-from .detect import Detection, DetectorConfig, detect_sampled
+from .calibrate import ALL_DIST_TERMS, Calibration, IntrinsicsFit, calibrate_precise, intrinsics_fit
+from .detect import Detection, DetectorConfig, detect_footage, detect_sampled
 from .path import fill_from_device, fuse_with_path, refine_jointly
 from .solve import FramePose, PoseConfig, pose_frames, reject_outliers
 
@@ -40,21 +40,53 @@ class PoseRun:
         return [p for p in self.frames if p.posed]
 
 
+PROBE_FRAMES = 24     # frames spread over the footage that given intrinsics are first checked on
+
+
+def probe_views(source: FootageSource, board: BoardSpec, fps: float | None = None,
+                det_cfg: DetectorConfig = DetectorConfig()) -> list[Detection]:
+    """Board detections in :data:`PROBE_FRAMES` frames spread evenly over ``source`` (sampled to ``fps``)."""
+    idx = sample_indices(source.info.times, fps)
+    pick = np.unique(np.linspace(0, len(idx) - 1, min(PROBE_FRAMES, len(idx))).round().astype(int))
+    return detect_footage(source, idx[pick], board, det_cfg)
+
+
+def check_intrinsics(dets: list[Detection], board: BoardSpec, intr: Intrinsics, source: str,
+                     hint: str) -> IntrinsicsFit | None:
+    """The :class:`IntrinsicsFit` of ``intr`` (from ``source``) over board views ``dets``; a
+    misfit is a :class:`DbbError` with both figures and ``hint``. None: too few views to judge."""
+    fit = intrinsics_fit(dets, board, intr)
+    if fit is not None and fit.misfit:
+        raise DbbError(f"{source} does not fit this footage: board reprojection {fit.given_rms:.2g} px with "
+                       f"its intrinsics, {fit.calibrated_rms:.2g} px calibrated from {fit.views} of the frames; "
+                       f"{hint}")
+    return fit
+
+
 def estimate_poses(source: FootageSource, board: BoardSpec, intr: Intrinsics | None = None,
                    fps: float | None = None, blur_ratio: float = 0.4, refine: bool = False,
                    workers: int = 1, det_cfg: DetectorConfig = DetectorConfig(),
                    pose_cfg: PoseConfig = PoseConfig(), min_posed: int = 3,
                    tick: Callable[[int], None] | None = None, total: Callable[[int], None] | None = None,
                    intr_source: str = "camera.json", device_c2w: np.ndarray | None = None,
-                   calib_views: int = 100) -> PoseRun:
+                   calib_views: int = 100, misfit_hint: str | None = None) -> PoseRun:
     """Frames of ``source`` -> metric camera poses in the board frame (see module doc).
 
     ``device_c2w`` (N, 4, 4): the device's own poses (Record3D), used where the board is hidden.
     Without ``intr``, the intrinsics are calibrated from at most ``calib_views`` diverse frames.
-    Raises :class:`DbbError` when no frame shows the board (naming the dictionary seen
-    instead) or fewer than ``min_posed`` frames can be posed.
+    With ``intr`` and a ``misfit_hint``, they are first checked against a handful of board views
+    spread over the footage (:func:`check_intrinsics`). Raises :class:`DbbError` when no frame
+    shows the board (naming the dictionary seen instead), when the given intrinsics misfit, or
+    when fewer than ``min_posed`` frames can be posed.
     """
     info = source.info
+    fit = None
+    if intr is not None:
+        if (intr.width, intr.height) != (info.width, info.height):
+            raise DbbError(f"{intr_source} is for {intr.width}x{intr.height} images but the footage is "
+                           f"{info.width}x{info.height}")
+        if misfit_hint is not None:     # before the whole footage is searched for the board
+            fit = check_intrinsics(probe_views(source, board, fps, det_cfg), board, intr, intr_source, misfit_hint)
     dets = detect_sampled(source, board, fps, det_cfg, workers, tick, total)
     blurry = blurry_mask(np.array([d.sharpness for d in dets]), blur_ratio)
     calib = None
@@ -62,10 +94,9 @@ def estimate_poses(source: FootageSource, board: BoardSpec, intr: Intrinsics | N
         # Calibrating from the capture itself: every diverse view tightens the focal length.
         calib = calibrate_precise(source, [d for d, b in zip(dets, blurry) if not b], board, calib_views)
         intr, intr_source = calib.intrinsics, f"calibrated from the footage (RMS {calib.rms:.3f} px)"
-    elif (intr.width, intr.height) != (info.width, info.height):
-        raise DbbError(f"camera.json is for {intr.width}x{intr.height} but the footage is "
-                       f"{info.width}x{info.height}")
     sharp = [d for d, b in zip(dets, blurry) if not b]
+    if misfit_hint is not None and calib is None and fit is None:   # too few views in the probe: all of them
+        check_intrinsics(sharp, board, intr, intr_source, misfit_hint)
     poses = reject_outliers(pose_frames(sharp, board, intr, pose_cfg), pose_cfg)
     refined_rms = None
     if refine:

@@ -30,6 +30,9 @@ class CaptureInputs:
     background: Path | None
 
 
+R3D_INTRINSICS = "Record3D metadata"     # CaptureInputs.camera_source of a Record3D export's own intrinsics
+
+
 def resolve_capture(capture: Path, board: Path | None = None, camera: Path | None = None,
                     footage: Path | None = None, object_json: Path | None = None,
                     background: Path | None = None, need_board: bool = True) -> CaptureInputs:
@@ -47,7 +50,7 @@ def resolve_capture(capture: Path, board: Path | None = None, camera: Path | Non
     if cam_path is not None:
         intr, cam_src = Intrinsics.load(cam_path), str(cam_path)
     elif isinstance(src, R3dSource):
-        intr, cam_src = src.intrinsics(), "Record3D metadata"
+        intr, cam_src = src.intrinsics(), R3D_INTRINSICS
     obj = object_json or (capture / "object.json" if (capture / "object.json").is_file() else None)
     if background is None:
         for cand in ("background.mp4", "background.mov", "background"):

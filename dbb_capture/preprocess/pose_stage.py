@@ -31,7 +31,7 @@ from ..poses.export import (
     write_ply,
 )
 from ..poses.run import PoseRun, estimate_poses
-from .inputs import StageContext
+from .inputs import R3D_INTRINSICS, CaptureInputs, StageContext
 
 
 @dataclass(frozen=True)
@@ -57,7 +57,7 @@ def poses_stage(ctx: StageContext, _previous: Any = None) -> PosesOutput:
             inp.footage, inp.board, inp.camera, fps=cfg.fps, blur_ratio=cfg.blur_ratio,
             refine=cfg.refine, workers=cfg.workers, det_cfg=cfg.detector, pose_cfg=cfg.gates,
             tick=lambda n: prog.advance(task, n), total=lambda n: prog.update(task, total=n),
-            intr_source=inp.camera_source,
+            intr_source=inp.camera_source, misfit_hint=_misfit_hint(inp),
             device_c2w=inp.footage.arkit_c2w_opencv() if isinstance(inp.footage, R3dSource) else None)
         posed = run.posed
         undistort = Undistorter(run.intrinsics)
@@ -112,6 +112,15 @@ def _sphere_of(object_json: Path | None) -> tuple[np.ndarray, float] | None:
     except (OSError, TypeError, KeyError, ValueError):
         return None
     return (c, r) if np.all(np.isfinite(c)) and np.isfinite(r) and r > 0 else None
+
+
+def _misfit_hint(inp: CaptureInputs) -> str | None:
+    """What to do when the given intrinsics misfit the footage (None: calibrated here, no check)."""
+    if inp.camera is None:
+        return None
+    if inp.camera_source == R3D_INTRINSICS:
+        return "calibrate the camera (dbb-capture calibrate) and pass --camera"
+    return "recalibrate or omit camera.json"
 
 
 def write_frames(path: Path, frames: list[Frame], up: tuple[float, float, float]) -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -17,7 +18,7 @@ from dbb_capture.capture.board import BoardSpec
 from dbb_capture.capture.footage import FootageFrame
 from dbb_capture.geometry.cameras import Intrinsics, project_points
 from dbb_capture.geometry.transforms import look_at
-from dbb_capture.poses.calibrate import calibrate
+from dbb_capture.poses.calibrate import calibrate, intrinsics_fit
 from dbb_capture.poses.detect import Detection, detect_frames
 from dbb_capture.poses.solve import pose_frames
 
@@ -133,6 +134,25 @@ def test_square_pixels_unless_the_corners_say_otherwise():
     cal = calibrate(_synthetic_detections(wide, board, n=16, noise_px=0.05), board, wide.width, wide.height)
     assert not cal.square_pixels
     assert abs(cal.intrinsics.fx / cal.intrinsics.fy - 1.03) < 0.002
+
+
+def test_given_intrinsics_misfit_only_when_far_off(real_photos):
+    """Given intrinsics against a quick calibration of the same views: the true camera and
+    OpenCV's own calibration of its photos fit (within 1.1 x), a focal length 1.5 x off does not."""
+    board = BoardSpec(7, 5, 0.05, 0.0375, "DICT_5X5_100")
+    truth = Intrinsics(640, 480, 530.0, 530.0, 319.7, 240.2, (-0.15, 0.08, 0.0, 0.0, 0.0))
+    dets = _synthetic_detections(truth, board, n=12, noise_px=0.05)
+    fit = intrinsics_fit(dets, board, truth)
+    assert not fit.misfit and fit.views == 12 and fit.given_rms < 1.1 * fit.calibrated_rms
+    off = intrinsics_fit(dets, board, replace(truth, fx=1.5 * truth.fx, fy=1.5 * truth.fy))
+    assert off.misfit and off.given_rms > 0.5 and off.calibrated_rms == fit.calibrated_rms
+    assert intrinsics_fit(dets[:3], board, truth) is None            # too few views to judge
+    real = BoardSpec.from_json(REAL_BOARD)
+    frames = [FootageFrame(i, float(i), cv2.imread(str(p), cv2.IMREAD_GRAYSCALE), p.stem)
+              for i, p in enumerate(sorted(real_photos.iterdir()))]
+    K, dist = _reference()
+    fit = intrinsics_fit(detect_frames(frames, real), real, Intrinsics.from_matrix(640, 480, K, dist))
+    assert not fit.misfit and fit.views == 4 and fit.given_rms < 1.1 * fit.calibrated_rms
 
 
 @pytest.mark.parametrize("case", ["no_board_flag", "wrong_dictionary", "bad_board_json"])
