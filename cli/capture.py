@@ -7,6 +7,8 @@ from pathlib import Path
 
 import click
 
+from rich.markup import escape
+
 from dbb_capture.core.progress import console
 
 from .common import DbbGroup, given, overwrite_option, refuse_with
@@ -91,7 +93,7 @@ def synth(out: Path, kind: str, seconds: float, background_seconds: float | None
         samples=samples, noise=noise, crf=crf,
         background_seconds=None if no_background else (background_seconds or seconds))
     made = write_capture(cfg, out, overwrite=overwrite, with_camera_json=camera_json)
-    console.print(f"[green]wrote[/green] {made.root}: {made.n_frames} frames "
+    console.print(f"[green]wrote[/green] {escape(str(made.root))}: {made.n_frames} frames "
                   f"({made.width}x{made.height} @ {made.fps:g} fps), "
                   f"{made.n_background_frames} clean-plate frames, "
                   f"{made.seconds_per_frame * 1000:.0f} ms/frame")
@@ -152,7 +154,7 @@ def calibrate(input_path: Path, board_path: Path | None, output: Path, fps: floa
                                 total=lambda n: prog.update(task, total=n), precise=precise)
     write_json(output, cal.to_json())
     i = cal.intrinsics
-    console.print(f"[green]wrote[/green] {output}: fx {i.fx:.2f} fy {i.fy:.2f} cx {i.cx:.2f} "
+    console.print(f"[green]wrote[/green] {escape(str(output))}: fx {i.fx:.2f} fy {i.fy:.2f} cx {i.cx:.2f} "
                   f"cy {i.cy:.2f}, RMS {cal.rms:.3f} px over {len(cal.used)} views"
                   + (f" ({len(cal.rejected)} outlier views rejected)" if cal.rejected else ""))
 
@@ -270,8 +272,10 @@ def preprocess(capture: Path, output: Path, board_path: Path | None, camera_path
                            background=replace(BackgroundConfig(), minutes=background_minutes, steps=background_steps,
                                               video_room=video_room))
     res = run_preprocess(inputs, output, cfg, overwrite=overwrite)
+    for warning in res.warnings:
+        console.print(f"[yellow]warning:[/yellow] {escape(warning)}", soft_wrap=True)
     for note in res.notes:
-        console.print(f"[yellow]note:[/yellow] {note}", soft_wrap=True)
+        console.print(f"[yellow]note:[/yellow] {escape(note)}", soft_wrap=True)
     last = res.stages_run[-1] if res.stages_run else None
     what = ""
     if last == "poses":
@@ -281,7 +285,7 @@ def preprocess(capture: Path, output: Path, board_path: Path | None, camera_path
         what = (f"; {st['crops']} crops ({st['train']} train, {st['test']} test), "
                 f"{st['sequences']['train']} + {st['sequences']['test']} sequences; see dataset.json "
                 f"and contact_sheet.png")
-    console.print(f"[green]wrote[/green] {res.dataset}: stages {', '.join(res.stages_run)}" + what)
+    console.print(f"[green]wrote[/green] {escape(str(res.dataset))}: stages {', '.join(res.stages_run)}" + what)
     poses = Path(res.dataset) / "poses" / "report.json"
     report = json.loads(poses.read_text()) if poses.is_file() else {}
     if "frames_posed" in report:              # a fixed camera has no poses to speak of

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import click
+from rich.markup import escape
 
 from .common import DbbGroup, overwrite_option
 
@@ -31,7 +32,7 @@ def bundle(run, out, zip_it, dataset, overwrite) -> None:
 
     m = make_bundle(run, out, zip_it, dataset, overwrite)
     pm = m.proxy_mesh
-    console.print(f"wrote {out}: {m.kind} bundle, {len(m.files)} files; proxy mesh: {pm['method']}, "
+    console.print(f"wrote {escape(str(out))}: {m.kind} bundle, {len(m.files)} files; proxy mesh: {pm['method']}, "
                   f"{pm['triangles']} triangles, watertight {pm['watertight']}", soft_wrap=True)
 
 
@@ -54,7 +55,7 @@ def render(bundle, cameras, out, first_frame, space, overwrite) -> None:
     from dbb_capture.core.progress import console
 
     paths = render_bundle(bundle, cameras, out, first_frame, space, overwrite)
-    console.print(f"wrote {len(paths)} RGBA PNGs to {out}", soft_wrap=True)
+    console.print(f"wrote {len(paths)} RGBA PNGs to {out}", soft_wrap=True, markup=False)
 
 
 @main.command("verify")
@@ -66,5 +67,5 @@ def verify(bundle) -> None:
     from dbb_capture.core.progress import console
 
     for line in verify_bundle(bundle):
-        console.print(f"[green]ok[/green] {line}", soft_wrap=True)
-    console.print(f"{bundle}: verified", soft_wrap=True)
+        console.print(f"[green]ok[/green] {escape(line)}", soft_wrap=True)
+    console.print(f"{bundle}: verified", soft_wrap=True, markup=False)

@@ -6,6 +6,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import click
+from rich.markup import escape
 
 from dbb_capture.dynamic.config import preset_names
 
@@ -81,7 +82,7 @@ def plenoctree(dataset, out, minutes, steps, downscale, resume, overwrite, mode,
     run = train_run(dataset, out, cfg, fcfg, resume=resume, overwrite=overwrite, resume_asks=tuple(asked))
     rec = run.record
     mp = rec.metrics.get("mean_psnr_tree_white")
-    console.print(f"wrote {out}: {rec.tree.file} ({rec.tree.bytes / 1e6:.1f} MB, {rec.tree.data_format}, "
+    console.print(f"wrote {escape(str(out))}: {rec.tree.file} ({rec.tree.bytes / 1e6:.1f} MB, {rec.tree.data_format}, "
                   f"depth {rec.tree.depth_limit}), {rec.training.steps} steps in "
                   f"{rec.training.seconds / 60:.1f} min"
                   + (f", {rec.metrics['views']} PSNR {mp:.2f} dB on white" if mp is not None else ""))
@@ -207,7 +208,7 @@ def _print_rssm(out: Path, record, what: str) -> None:
 
     ev = record.eval
     p = ev["mean_psnr_db"]
-    console.print(f"wrote {out}: {what}; 10-step open-loop PSNR {p['model']:.2f} dB "
+    console.print(f"wrote {escape(str(out))}: {what}; 10-step open-loop PSNR {p['model']:.2f} dB "
                   f"(copy-first {p['copy_first']:.2f}, near {p['near']:.2f}) on {ev['windows']} {ev['split']} "
                   f"windows; motion-energy ratio {ev['motion']['ratio']}")
     console.print(_rssm_words(ev, out), markup=False)

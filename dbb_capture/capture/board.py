@@ -13,6 +13,10 @@ from pathlib import Path
 import numpy as np
 
 from ..core.errors import DbbError
+from ..core.fields import entry, flag, number, text
+
+MAX_SQUARE_M = 1.0      # a board square larger than this is a unit mistake (lengths are metres)
+MAX_SQUARES = 200       # squares along a side: more than any ArUco dictionary has markers for
 
 
 def aruco_dictionary_names() -> list[str]:
@@ -36,10 +40,15 @@ class BoardSpec:
     def __post_init__(self) -> None:
         if self.squares_x < 2 or self.squares_y < 2:
             raise DbbError(f"board: needs at least 2x2 squares, got {self.squares_x}x{self.squares_y}")
-        if not 0 < self.marker_length < self.square_length:
-            raise DbbError(
-                f"board: marker_length ({self.marker_length}) must be positive and smaller than "
-                f"square_length ({self.square_length})")
+        # Each length is blamed for itself: a bad square_length is not the marker's fault.
+        if not 0 < self.square_length <= MAX_SQUARE_M:
+            raise DbbError(f"board: square_length ({self.square_length}) must be positive and at most "
+                           f"{MAX_SQUARE_M:g} m (lengths are metres)")
+        if not 0 < self.marker_length:
+            raise DbbError(f"board: marker_length ({self.marker_length}) must be positive")
+        if not self.marker_length < self.square_length:
+            raise DbbError(f"board: marker_length ({self.marker_length}) must be smaller than "
+                           f"square_length ({self.square_length})")
         if self.dictionary not in aruco_dictionary_names():
             raise DbbError(f"board: unknown dictionary {self.dictionary!r} "
                            f"(expected one of DICT_4X4_50 ... DICT_APRILTAG_36h11)")
@@ -51,12 +60,19 @@ class BoardSpec:
     # ---- files
     @classmethod
     def from_json(cls, d: dict, source: str = "board.json") -> "BoardSpec":
-        try:
-            return cls(int(d["squares_x"]), int(d["squares_y"]), float(d["square_length"]),
-                       float(d["marker_length"]), str(d["dictionary"]),
-                       bool(d.get("legacy_pattern", False)))
-        except (KeyError, TypeError, ValueError) as e:
-            raise DbbError(f"{source}: missing or invalid board field ({e})") from None
+        """The board of ``board.json`` content ``d``; each entry checked on its own (type, range),
+        so the message names the entry that is wrong."""
+        def length(name: str) -> float:
+            return number(entry(d, name, source), name, source, low=0, low_open=True,
+                          high=MAX_SQUARE_M, unit=" m")
+
+        sx, sy = (number(entry(d, n, source), n, source, low=2, high=MAX_SQUARES, integer=True)
+                  for n in ("squares_x", "squares_y"))
+        square, marker = length("square_length"), length("marker_length")
+        if not marker < square:
+            raise DbbError(f"{source}: marker_length {marker:g} m must be smaller than square_length {square:g} m")
+        return cls(int(sx), int(sy), square, marker, text(entry(d, "dictionary", source), "dictionary", source),
+                   flag(entry(d, "legacy_pattern", source, False), "legacy_pattern", source))
 
     @classmethod
     def load(cls, path: Path) -> "BoardSpec":
@@ -65,7 +81,11 @@ class BoardSpec:
         d = read_json(path, "board file")
         if not isinstance(d, dict):
             raise DbbError(f"{path}: expected a JSON object describing the board")
-        return cls.from_json(d, str(path))
+        try:
+            return cls.from_json(d, str(path))
+        except DbbError as e:
+            msg = str(e)
+            raise type(e)(msg if msg.startswith(str(path)) else f"{path}: {msg.removeprefix('board: ')}") from None
 
     def to_json(self) -> dict:
         return asdict(self)

@@ -28,6 +28,9 @@ VIDEO_EXTS = (".mp4", ".mov", ".m4v", ".avi", ".mkv", ".webm")
 IMAGE_EXTS = (".jpg", ".jpeg", ".png")
 RAW_EXTS = (".dng", ".cr2", ".cr3", ".nef", ".arw", ".raf", ".orf", ".rw2", ".pef", ".srw")
 DEFAULT_IMAGE_FPS = 10.0  # time step given to image folders, which carry no clock
+# A video with fewer of the frames its container announces than this share is refused: a copy
+# cut short (an upload that stopped) would give poses of a part of the capture without saying so.
+MIN_DECODED_SHARE = 0.5
 
 
 @dataclass(frozen=True)
@@ -50,6 +53,7 @@ class FootageInfo:
     height: int
     fps: float          # nominal rate (images: the assumed one)
     times: np.ndarray
+    announced: int | None = None   # frames the container's index announces (videos), None: unknown
 
     @property
     def n_frames(self) -> int:
@@ -112,10 +116,10 @@ class VideoSource(FootageSource):
         import av
 
         try:
-            container = av.open(str(self.path))
+            container = av.open(str(self.path), metadata_errors="replace")
             stream = container.streams.video[0]
         except (av.error.FFmpegError, IndexError, OSError) as e:
-            raise InputError(f"cannot read video {self.path}: {e}") from None
+            raise InputError(f"cannot read video {self.path}: {_why(e)}") from None
         stream.thread_type = "NONE" if self.single_thread else "AUTO"
         return container, stream
 
@@ -125,9 +129,10 @@ class VideoSource(FootageSource):
         container, stream = self._open()
         try:
             # Packet timestamps give every frame's time without decoding a pixel.
-            pts = sorted(p.pts for p in container.demux(stream) if p.pts is not None and p.size)
+            pts = sorted(p.pts for p in _packets(container, stream) if p.pts is not None and p.size)
+            announced = int(stream.frames or 0) or None
             container.seek(0)
-            first = next(container.decode(stream), None)
+            first = next(_decoded(container, stream), None)
             # Read everything from the stream before closing: PyAV objects of a closed
             # container point at freed memory (a segmentation fault, not an exception).
             tb = float(stream.time_base)
@@ -135,11 +140,15 @@ class VideoSource(FootageSource):
             if first is not None:
                 rotation, w, h = float(first.rotation or 0), first.width, first.height
         except av.error.FFmpegError as e:
-            raise InputError(f"cannot read video {self.path}: {e}") from None
+            raise InputError(f"cannot read video {self.path}: {_why(e)}") from None
         finally:
             container.close()
         if first is None or not pts:
             raise InputError(f"video {self.path} holds no decodable frames")
+        if announced and len(pts) < MIN_DECODED_SHARE * announced:
+            raise InputError(f"video {self.path} is cut short: its container announces {announced} frames but the "
+                             f"file holds {len(pts)} ({100 * len(pts) / announced:.0f} %, at least "
+                             f"{100 * MIN_DECODED_SHARE:.0f} % needed): a truncated copy? copy the file again")
         times = (np.asarray(pts, np.float64) - pts[0]) * tb
         self._pts0 = pts[0]
         self._rotation = rotation
@@ -147,7 +156,7 @@ class VideoSource(FootageSource):
             w, h = h, w
         fps = rate or (
             (len(times) - 1) / times[-1] if len(times) > 1 and times[-1] > 0 else 30.0)
-        return FootageInfo(self.kind, self.path, w, h, fps, times)
+        return FootageInfo(self.kind, self.path, w, h, fps, times, announced)
 
     def read(self, indices: Sequence[int], gray: bool = False) -> Iterator[FootageFrame]:
         import av
@@ -163,7 +172,7 @@ class VideoSource(FootageSource):
             if want[0] > 0:
                 container.seek(start_pts, stream=stream, backward=True, any_frame=False)
             j = 0
-            for frame in container.decode(stream):
+            for frame in _decoded(container, stream):
                 if frame.pts is None:
                     continue
                 # Match decoded frames to indices by timestamp (robust to seeking to a keyframe).
@@ -181,9 +190,52 @@ class VideoSource(FootageSource):
                 if j >= len(want):
                     break
         except av.error.FFmpegError as e:
-            raise InputError(f"cannot decode video {self.path}: {e}") from None
+            raise InputError(f"cannot decode video {self.path}: {_why(e)}") from None
         finally:
             container.close()
+
+
+def _why(e: Exception) -> str:
+    """FFmpeg's words for an error, without its number and the file name the message repeats."""
+    return str(getattr(e, "strerror", None) or e)
+
+
+def frames_decoded(info: FootageInfo, sampled: int, got: int) -> int:
+    """How many of the footage's frames decode, from ``got`` decoded of ``sampled`` asked for;
+    an :class:`InputError` where a video decodes to fewer than :data:`MIN_DECODED_SHARE` of the
+    frames its container announces (before any pose is solved from the few that did)."""
+    n = info.n_frames if got >= sampled else int(info.n_frames * got / max(sampled, 1))
+    if info.announced and n < MIN_DECODED_SHARE * info.announced:
+        raise InputError(f"video {info.path}: only {n} of the {info.announced} frames its container announces "
+                         f"could be decoded ({100 * n / info.announced:.0f} %, at least "
+                         f"{100 * MIN_DECODED_SHARE:.0f} % needed): the file is cut short or damaged; copy it again")
+    return n
+
+
+def _packets(container, stream) -> Iterator:
+    """The stream's packets up to the first the container cannot read (a file cut short ends
+    there instead of failing: the frames before it are good)."""
+    import av
+
+    packets = container.demux(stream)
+    while True:
+        try:
+            yield next(packets)
+        except (StopIteration, av.error.FFmpegError):
+            return
+
+
+def _decoded(container, stream) -> Iterator:
+    """Decoded frames of the stream; a packet the decoder refuses (damaged, or cut off at the
+    end of the file) loses its frame and decoding goes on, so a caller counts what it got."""
+    import av
+
+    for packet in _packets(container, stream):
+        try:
+            frames = packet.decode()
+        except av.error.FFmpegError:
+            continue
+        yield from frames
 
 
 # --------------------------------------------------------------------------- image folders
@@ -227,10 +279,24 @@ class ImageFolderSource(_FileListSource):
     exts = IMAGE_EXTS
 
     def _load(self, path: Path) -> np.ndarray:
-        img = cv2.imread(str(path), cv2.IMREAD_COLOR)  # applies the EXIF orientation, as viewers do
-        if img is None:
-            raise InputError(f"cannot read image {path}")
-        return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+        return read_rgb8(path)
+
+
+def read_rgb8(path: Path) -> np.ndarray:
+    """An image file as RGB uint8 (H, W, 3), turned by its EXIF orientation as viewers do (16-bit
+    images keep their high byte). Read with Pillow, which says what is wrong with a damaged file
+    in its exception, where libpng and libjpeg under OpenCV print it on stderr."""
+    from PIL import Image, ImageOps
+
+    try:
+        with Image.open(path) as im:
+            im = ImageOps.exif_transpose(im)
+            if im.mode.startswith("I"):          # 16/32-bit grey
+                grey = (np.asarray(im, np.uint32) >> (8 if im.mode.startswith("I;16") else 24)).astype(np.uint8)
+                return np.repeat(grey[..., None], 3, 2)
+            return np.asarray(im.convert("RGB"))
+    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as e:
+        raise InputError(f"cannot read image {path}: {e}") from None
 
 
 def decode_raw(path: Path) -> np.ndarray:

@@ -143,6 +143,12 @@ def read_json(path: Path, what: str = "file") -> Any:
         raise DbbError(f"{what} not found: {path}") from None
     except json.JSONDecodeError as e:
         raise DbbError(f"{what} {path} is not valid JSON: {e.msg} at line {e.lineno}") from None
+    except UnicodeDecodeError as e:
+        raise DbbError(f"{what} {path} is not valid JSON: not UTF-8 text (byte {e.start})") from None
+    except RecursionError:
+        raise DbbError(f"{what} {path} is not valid JSON: nested too deeply") from None
+    except OSError as e:
+        raise DbbError(f"cannot read {what} {path}: {e.strerror or e}") from None
 
 
 def run_work_dir(out: Path) -> Path:

@@ -83,7 +83,8 @@ def map_spawned(fn: Callable[[T], R], tasks: Sequence[T], workers: int,
     """
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
-    with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init, initargs=(q, os.getpid())) as pool:
+    pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init, initargs=(q, os.getpid()))
+    try:
         futures = [pool.submit(fn, t) for t in tasks]
         while True:
             try:
@@ -95,5 +96,14 @@ def map_spawned(fn: Callable[[T], R], tasks: Sequence[T], workers: int,
             if tick:
                 tick(n)
         results = [f.result() for f in futures]
+    except BaseException:
+        # A stop (Ctrl-C, SIGTERM) or a failed task: the pool's own shutdown would wait for every
+        # worker to finish its whole segment first (seconds to minutes); nothing of theirs is wanted.
+        procs = list((getattr(pool, "_processes", None) or {}).values())
+        pool.shutdown(wait=False, cancel_futures=True)
+        for proc in procs:
+            proc.kill()
+        raise
+    pool.shutdown()
     q.close()
     return results

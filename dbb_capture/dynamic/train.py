@@ -137,6 +137,8 @@ def train(state: TrainState, data: SequenceData, tcfg: TrainConfig, ckpt: Path |
     """
     state.train_config = asdict(tcfg)
     state.model.train()
+    if ckpt is not None and not ckpt.is_file():     # resumable from the start, even after a SIGKILL
+        state.save(ckpt)
     try:
         _train_loop(state, data, tcfg, ckpt, on_step)
     except KeyboardInterrupt:

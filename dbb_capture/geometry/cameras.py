@@ -7,8 +7,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.errors import DbbError
 from .transforms import invert_rigid
+
+MAX_SIDE_PX = 100_000              # camera.json: an image side larger than this is no camera's
+FOCAL_RANGE = (0.05, 50.0)         # camera.json: focal lengths in units of the image's longer side
+PRINCIPAL_RANGE = (0.1, 0.9)       # camera.json: principal point in units of the image's width, height
 
 
 @dataclass(frozen=True)
@@ -47,12 +50,21 @@ class Intrinsics:
 
     @classmethod
     def from_json(cls, d: dict, source: str = "camera.json") -> "Intrinsics":
-        try:
-            dist = tuple(float(v) for v in d.get("dist", [0.0] * 5))
-            return cls(int(d["width"]), int(d["height"]), float(d["fx"]), float(d["fy"]),
-                       float(d["cx"]), float(d["cy"]), dist)
-        except (KeyError, TypeError, ValueError) as e:
-            raise DbbError(f"{source}: missing or invalid intrinsics field ({e})") from None
+        """The intrinsics of ``camera.json`` content ``d``, each entry checked on its own: a
+        size of whole pixels, focal lengths of a field of view between about 1 and 170 degrees
+        (:data:`FOCAL_RANGE` times the longer side), the principal point inside the middle 80 %
+        of the image (:data:`PRINCIPAL_RANGE`), at most 5 finite distortion terms."""
+        from ..core.fields import entry, number, numbers
+
+        w, h = (number(entry(d, k, source), k, source, low=1, high=MAX_SIDE_PX, integer=True, unit=" px")
+                for k in ("width", "height"))
+        side = max(w, h)
+        fx, fy = (number(entry(d, k, source), k, source, low=FOCAL_RANGE[0] * side, high=FOCAL_RANGE[1] * side,
+                         unit=" px") for k in ("fx", "fy"))
+        cx, cy = (number(entry(d, k, source), k, source, low=PRINCIPAL_RANGE[0] * n, high=PRINCIPAL_RANGE[1] * n,
+                         unit=" px") for k, n in (("cx", w), ("cy", h)))
+        dist = numbers(entry(d, "dist", source, []), "dist", source, range(6), hint=" [k1, k2, p1, p2, k3]")
+        return cls(int(w), int(h), fx, fy, cx, cy, tuple(dist))
 
     @classmethod
     def from_matrix(cls, width: int, height: int, K: np.ndarray, dist: np.ndarray) -> "Intrinsics":

@@ -13,7 +13,7 @@ from typing import Callable
 import numpy as np
 
 from ..capture.board import BoardSpec
-from ..capture.footage import FootageSource, blurry_mask, sample_indices
+from ..capture.footage import FootageSource, blurry_mask, frames_decoded, sample_indices
 from ..core.errors import DbbError
 from ..geometry.cameras import Intrinsics
 from .calibrate import ALL_DIST_TERMS, Calibration, IntrinsicsFit, calibrate_precise, intrinsics_fit
@@ -34,6 +34,8 @@ class PoseRun:
     calibration: Calibration | None = None
     refined_rms: float | None = None
     frames_in_footage: int = 0     # before sampling to --fps
+    frames_announced: int | None = None   # what the video's container announces (None: not a video)
+    frames_decoded: int = 0        # of the footage's frames, those the decoder gave (estimated from the sampled ones)
 
     @property
     def posed(self) -> list[FramePose]:
@@ -88,6 +90,7 @@ def estimate_poses(source: FootageSource, board: BoardSpec, intr: Intrinsics | N
         if misfit_hint is not None:     # before the whole footage is searched for the board
             fit = check_intrinsics(probe_views(source, board, fps, det_cfg), board, intr, intr_source, misfit_hint)
     dets = detect_sampled(source, board, fps, det_cfg, workers, tick, total)
+    decoded = frames_decoded(info, len(sample_indices(info.times, fps)), len(dets))
     blurry = blurry_mask(np.array([d.sharpness for d in dets]), blur_ratio)
     calib = None
     if intr is None:
@@ -117,4 +120,5 @@ def estimate_poses(source: FootageSource, board: BoardSpec, intr: Intrinsics | N
             why[p.status] = why.get(p.status, 0) + 1
         raise DbbError(f"only {n_posed} of {len(frames)} frames could be posed (need {min_posed}): "
                        + ", ".join(f"{k}: {v}" for k, v in sorted(why.items())))
-    return PoseRun(intr, intr_source, frames, tuple(dets), calib, refined_rms, info.n_frames)
+    return PoseRun(intr, intr_source, frames, tuple(dets), calib, refined_rms, info.n_frames,
+                   info.announced, decoded)

@@ -13,8 +13,9 @@ from ..background.model import BackgroundModel
 from ..background.rays import TrainingView
 from ..background.train import parallax_coverage, train_background
 from ..capture.footage import FootageSource, open_footage
+from ..capture.object_spec import load_object_sphere
 from ..core.errors import InputError
-from ..core.outputs import read_json, write_json
+from ..core.outputs import write_json
 from ..core.progress import progress
 from ..crops.camera import crop_windows
 from ..crops.object import matte_scale
@@ -54,13 +55,7 @@ def object_sphere(ctx: StageContext, poses: PosesOutput) -> ObjectSphere:
     c2ws = np.stack([im.c2w for im in poses.images])
     up = up_from_cameras(c2ws)
     if (ctx.out / "object.json").is_file():
-        obj = read_json(ctx.out / "object.json", "object sphere")
-        try:
-            center, radius = np.asarray(obj["center"], float).reshape(3), float(obj["radius"])
-        except (KeyError, TypeError, ValueError):
-            raise InputError('object.json must be {"center": [x, y, z], "radius": r} (board frame, metres)') from None
-        if radius <= 0:
-            raise InputError(f"object.json: radius must be positive (got {radius})")
+        center, radius = load_object_sphere(ctx.out / "object.json")
         source = "object.json"
     else:
         vol = estimate_volume(list(poses.images))

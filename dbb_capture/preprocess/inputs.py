@@ -10,6 +10,7 @@ from typing import Any
 from ..background.config import BackgroundConfig
 from ..capture.board import BoardSpec
 from ..capture.footage import FootageSource, R3dSource, capture_footage, open_footage
+from ..capture.object_spec import load_object_sphere
 from ..core.errors import DbbError, InputError
 from ..crops.matte import MatteConfig
 from ..geometry.cameras import Intrinsics
@@ -36,7 +37,9 @@ R3D_INTRINSICS = "Record3D metadata"     # CaptureInputs.camera_source of a Reco
 def resolve_capture(capture: Path, board: Path | None = None, camera: Path | None = None,
                     footage: Path | None = None, object_json: Path | None = None,
                     background: Path | None = None, need_board: bool = True) -> CaptureInputs:
-    """Find the parts of a capture folder (flags override the files inside it)."""
+    """Find the parts of a capture folder (flags override the files inside it) and check each
+    before any work: footage readable, board, camera (its image size the footage's) and object
+    sphere (near the board) well formed."""
     capture = Path(capture)
     if not capture.is_dir():
         raise InputError(f"capture folder not found: {capture}")
@@ -49,9 +52,14 @@ def resolve_capture(capture: Path, board: Path | None = None, camera: Path | Non
     intr, cam_src = None, "calibrated from the footage"
     if cam_path is not None:
         intr, cam_src = Intrinsics.load(cam_path), str(cam_path)
+        if (intr.width, intr.height) != (src.info.width, src.info.height):
+            raise InputError(f"{cam_path} is for {intr.width}x{intr.height} images but the footage "
+                             f"{src.info.path} is {src.info.width}x{src.info.height}")
     elif isinstance(src, R3dSource):
         intr, cam_src = src.intrinsics(), R3D_INTRINSICS
     obj = object_json or (capture / "object.json" if (capture / "object.json").is_file() else None)
+    if obj is not None:
+        load_object_sphere(obj, board_spec)
     if background is None:
         for cand in ("background.mp4", "background.mov", "background"):
             if (capture / cand).exists():
@@ -101,6 +109,7 @@ class StageContext:
     cfg: PreprocessConfig
     out: Path
     notes: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)    # what went wrong but let the run go on
 
 
 @dataclass(frozen=True)

@@ -59,6 +59,7 @@ def poses_stage(ctx: StageContext, _previous: Any = None) -> PosesOutput:
             tick=lambda n: prog.advance(task, n), total=lambda n: prog.update(task, total=n),
             intr_source=inp.camera_source, misfit_hint=_misfit_hint(inp),
             device_c2w=inp.footage.arkit_c2w_opencv() if isinstance(inp.footage, R3dSource) else None)
+        check_decoded(ctx, run)
         posed = run.posed
         undistort = Undistorter(run.intrinsics)
         intr = undistort.target
@@ -101,6 +102,16 @@ def poses_stage(ctx: StageContext, _previous: Any = None) -> PosesOutput:
         ctx.notes.append(f"{len(skipped)} of {len(run.frames)} frames skipped: " + "; ".join(
             f"{k} ({len(v)}: {', '.join(v[:6])}{' ...' if len(v) > 6 else ''})" for k, v in sorted(why.items())))
     return PosesOutput(out / "transforms.json", intr, tuple(images), up, run)
+
+
+def check_decoded(ctx: StageContext, run: PoseRun) -> None:
+    """A video that decodes to fewer frames than its container announces (a copy cut short, a
+    damaged stream; too few of them are refused while posing,
+    :func:`~..capture.footage.frames_decoded`): a warning, kept in the dataset's record."""
+    announced, got = run.frames_announced, run.frames_decoded
+    if announced and got < announced:
+        ctx.warnings.append(f"video {ctx.inputs.footage.path.name}: {got} of the {announced} frames its container "
+                            f"announces could be decoded (the file is cut short or damaged); going on with those")
 
 
 def _sphere_of(object_json: Path | None) -> tuple[np.ndarray, float] | None:

@@ -37,6 +37,7 @@ class PreprocessResult:
     dataset: Path
     stages_run: tuple[str, ...]
     notes: tuple[str, ...]
+    warnings: tuple[str, ...]
     last: Any                        # the record of the last stage that ran
 
 
@@ -67,5 +68,5 @@ def run_preprocess(inputs: CaptureInputs, out: Path, cfg: PreprocessConfig = Pre
             "capture": str(inputs.root.resolve()), "footage": str(inputs.footage.path.resolve()),
             "background": str(inputs.background.resolve()) if inputs.background else None,
             "stages_run": ran, "stop_after": cfg.stop_after, "fps": cfg.fps,
-            "notes": ctx.notes})
-    return PreprocessResult(Path(out), tuple(ran), tuple(ctx.notes), record)
+            "notes": ctx.notes, "warnings": ctx.warnings})
+    return PreprocessResult(Path(out), tuple(ran), tuple(ctx.notes), tuple(ctx.warnings), record)

@@ -218,12 +218,15 @@ def train(state: TrainState, bank: RayBank, budget: Budget,
     *fraction of the budget* spent, so a shorter budget runs the same stages faster.
     ``on_step(state, running train PSNR)`` follows every step; checkpoints go to ``checkpoint``
     every ``checkpoint_every_s`` seconds or ``checkpoint_every_steps`` steps, whichever comes
-    first (a large field takes seconds to write), and on Ctrl-C or SIGTERM. The field is left
-    pruned: what gets baked and saved holds no empty lattice points.
+    first (a large field takes seconds to write), and on Ctrl-C or SIGTERM; the first one before
+    the first step, so a run killed outright (SIGKILL, power loss) can still be resumed. The field
+    is left pruned: what gets baked and saved holds no empty lattice points.
     """
     cfg = state.field.cfg
     gen = torch.Generator(device="cpu").manual_seed(cfg.seed + state.step)
     torch.manual_seed(cfg.seed + state.step)
+    if checkpoint is not None and not checkpoint.is_file():
+        state.save(checkpoint)
     t_start = time.perf_counter() - state.seconds
     try:
         _loop(state, bank, budget, on_step, checkpoint, checkpoint_every_s, checkpoint_every_steps, gen, t_start)

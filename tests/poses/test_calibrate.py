@@ -159,7 +159,7 @@ def test_given_intrinsics_misfit_only_when_far_off(real_photos):
 def test_calibrate_bad_input_exits_2(real_photos, tmp_path, case):
     args = ["calibrate", str(real_photos), "-o", str(tmp_path / "cam.json")]
     expect = {"no_board_flag": "--board", "wrong_dictionary": "DICT_6X6_",
-              "bad_board_json": "missing or invalid board field"}[case]
+              "bad_board_json": "squares_y is missing"}[case]
     if case == "wrong_dictionary":
         (tmp_path / "b4.json").write_text(json.dumps({**REAL_BOARD, "dictionary": "DICT_4X4_50"}))
         args += ["--board", str(tmp_path / "b4.json")]

@@ -5,18 +5,21 @@ from __future__ import annotations
 import json
 
 import cv2
+import pytest
 from click.testing import CliRunner
 from dbb_capture.cli.capture import main
 
 
-def test_object_sphere_outside_the_views_is_an_error(plate_capture, tmp_path):
+@pytest.mark.parametrize("center, words", [([5.0, 5.0, -1.0], "from the board centre"),   # checked first
+                                             ([1.9, 0.1, -0.1], "outside the view")])      # needs the poses
+def test_object_sphere_outside_the_views_is_an_error(plate_capture, tmp_path, center, words):
     bad = tmp_path / "object.json"
-    bad.write_text(json.dumps({"center": [5.0, 5.0, -1.0], "radius": 0.1}))
+    bad.write_text(json.dumps({"center": center, "radius": 0.1}))
     res = CliRunner().invoke(main, ["preprocess", str(plate_capture), "-o", str(tmp_path / "ds"),
                                     "--object", str(bad), "--camera",
                                     str(plate_capture / "ground_truth" / "camera.json")])
     lines = [ln for ln in res.output.splitlines() if ln.strip()]
-    assert res.exit_code == 2 and len(lines) == 1 and "outside the view" in lines[0], res.output
+    assert res.exit_code == 2 and len(lines) == 1 and words in lines[0], res.output
     assert not (tmp_path / "ds").exists()
 
 
