@@ -36,8 +36,8 @@ from .train import TrainState, budget_fraction, read_checkpoint, train
 def resume_configs(out: Path) -> tuple[RssmConfig, TrainConfig]:
     """The model and training settings of the run ``out``'s last checkpoint, as the base that a
     resumed run's own settings go over (so resuming keeps the preset and settings given at the start)."""
-    ck = read_checkpoint(resume_checkpoint(Path(out)), torch.device("cpu"))
-    return RssmConfig.from_json(ck["config"]), TrainConfig(**ck["train_config"])
+    ck = read_checkpoint(resume_checkpoint(Path(out)))
+    return ck.config, ck.train_config
 
 
 def train_run(dataset: Path, out: Path, cfg: RssmConfig, tcfg: TrainConfig, resume: bool = False,
@@ -152,7 +152,7 @@ def eval_run(run: Path, dataset: Path | None = None, temperature: float | None =
     model = load_model(run)
     data = load_sequences(Path(dataset) if dataset is not None else Path(record.dataset), model.cfg.size)
     ck = run / record.checkpoint
-    history = read_checkpoint(ck, torch.device("cpu"))["history"] if ck.is_file() else []
+    history = read_checkpoint(ck).history if ck.is_file() else []
     stepper = record.stepper
     if calibrate:
         cal = calibrate_temperature(model, data)

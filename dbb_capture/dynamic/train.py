@@ -4,14 +4,17 @@ its checkpoint, and the loop."""
 from __future__ import annotations
 
 import copy
+import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from ..core.errors import DbbError
+from ..core import checkpoint
+from ..core.errors import DbbError, InputError
+from ..core.fields import number, shown, type_name
 from .config import RssmConfig, TrainConfig
 from .data import SequenceData, augment, batch, training_windows
 from .losses import latent_loss, sequence_loss
@@ -59,16 +62,20 @@ class TrainState:
 
     @classmethod
     def load(cls, path: Path, tcfg: TrainConfig, device: torch.device) -> TrainState:
-        """The state saved at ``path``, its optimiser built for ``tcfg`` and then restored."""
-        ck = read_checkpoint(path, device)
-        try:
-            model = Rssm(RssmConfig.from_json(ck["config"])).to(device)
-            model.load_state_dict(ck["model"])
-        except (KeyError, RuntimeError) as e:
-            raise DbbError(f"cannot read RSSM checkpoint {path}: {e}") from None
-        st = cls(model, optimizer(model, tcfg), ck["step"], ck["seconds"], ck["bad_steps"], ck["history"],
-                 ck["ema"], ck["ema_updates"], ck["train_config"])
-        st.opt.load_state_dict(ck["opt"])
+        """The state saved at ``path``, its optimiser built for ``tcfg`` and then restored; every
+        entry checked first (:func:`read_checkpoint`, :func:`checkpoint.state_dict`)."""
+        ck = read_checkpoint(path)
+        where = str(path)
+        with torch.device("meta"):      # the shapes the config implies, without allocating them
+            like = Rssm(ck.config).state_dict()
+        weights = checkpoint.state_dict(ck.model, like, "model", where)
+        ema = None if ck.ema is None else checkpoint.state_dict(ck.ema, like, "ema", where)
+        model = Rssm(ck.config).to(device)
+        model.load_state_dict(weights)
+        st = cls(model, optimizer(model, tcfg), ck.step, ck.seconds, ck.bad_steps, ck.history,
+                 None if ema is None else {k: v.to(device) for k, v in ema.items()}, ck.ema_updates,
+                 asdict(ck.train_config))
+        load_optimizer(st.opt, ck.opt, where)
         return st
 
     def update_ema(self, decay: float) -> None:
@@ -97,18 +104,75 @@ class TrainState:
         return model
 
 
-def read_checkpoint(path: Path, device: torch.device) -> dict:
-    """A checkpoint's contents; one written by an older version is refused (train again)."""
-    try:
-        ck = torch.load(path, map_location=device, weights_only=False)
-    except Exception as e:              # a damaged file fails in many ways inside the unpickler
-        raise DbbError(f"cannot read RSSM checkpoint {path}: {type(e).__name__}: {e}") from None
-    if not isinstance(ck, dict) or ck.get("format") != CHECKPOINT_FORMAT:
-        raise DbbError(f"{path} is an RSSM checkpoint of an older version: train the run again")
+@dataclass(frozen=True)
+class Checkpoint:
+    """A checkpoint's entries as :func:`read_checkpoint` checked them (tensors on the CPU);
+    ``model``, ``ema`` and ``opt`` are checked against the model by :meth:`TrainState.load`."""
+
+    config: RssmConfig
+    train_config: TrainConfig
+    step: int
+    seconds: float
+    bad_steps: int
+    history: list[dict]
+    ema_updates: int
+    model: dict
+    ema: dict | None
+    opt: dict
+
+
+def read_checkpoint(path: Path) -> Checkpoint:
+    """A checkpoint's entries, each of the type and range it must have; one written by an older
+    version is refused (train again)."""
+    ck = checkpoint.load(path, "RSSM checkpoint")
+    if ck.get("format") != CHECKPOINT_FORMAT:
+        raise InputError(f"{path} is an RSSM checkpoint of an older version: train the run again")
     if ck.get("version") != CHECKPOINT_VERSION:
-        raise DbbError(f"{path} is an RSSM checkpoint of version {ck.get('version')} (this version reads "
-                       f"{CHECKPOINT_VERSION}): train the run again")
-    return ck
+        which = f"of version {shown(ck['version'])}" if "version" in ck else "without a version"
+        raise InputError(f"{path} is an RSSM checkpoint {which} (this version reads {CHECKPOINT_VERSION}): "
+                         "train the run again")
+    where = str(path)
+    cfg = checkpoint.config(checkpoint.part(ck, "config", where), RssmConfig, "config", where)
+    tcfg = checkpoint.config(checkpoint.part(ck, "train_config", where), TrainConfig, "train_config", where)
+    step, seconds = checkpoint.progress(ck, where)
+    count = lambda name: int(number(checkpoint.part(ck, name, where), name, where, low=0, integer=True))
+    model, opt, ema = (checkpoint.part(ck, k, where) for k in ("model", "opt", "ema"))
+    for name, value in (("model", model), ("opt", opt), ("ema", ema)):
+        if not isinstance(value, dict) and not (name == "ema" and value is None):
+            raise InputError(f"{where}: {name} must be a dict, not {type_name(value)} ({shown(value)})")
+    return Checkpoint(replace(cfg, loss_scales=dict(cfg.loss_scales)), tcfg, step, seconds, count("bad_steps"),
+                      checkpoint.history(checkpoint.part(ck, "history", where), "history", where),
+                      count("ema_updates"), model, ema, opt)
+
+
+def load_optimizer(opt: torch.optim.Optimizer, saved: dict, where: str) -> None:
+    """Restore ``opt`` from the checkpoint's ``opt`` entry (``saved``): one parameter group of
+    finite settings, and for each parameter finite moments of its shape (a NaN moment would turn
+    the first step's weights into NaN)."""
+    groups, state = checkpoint.part(saved, "opt.param_groups", where), checkpoint.part(saved, "opt.state", where)
+    if not isinstance(groups, list) or len(groups) != len(opt.param_groups) or not all(isinstance(g, dict) for g in groups):
+        raise InputError(f"{where}: opt.param_groups must be a list of {len(opt.param_groups)} dict, "
+                         f"not {type_name(groups)} ({shown(groups)})")
+    if not isinstance(state, dict):
+        raise InputError(f"{where}: opt.state must be a dict, not {type_name(state)} ({shown(state)})")
+    params = [p for g in opt.param_groups for p in g["params"]]
+    for g, group in enumerate(groups):
+        for k, v in group.items():
+            if isinstance(v, float) and not math.isfinite(v):
+                raise InputError(f"{where}: opt.param_groups[{g}].{k} must be a finite number, not {shown(v)}")
+    for i, moments in state.items():
+        if not isinstance(i, int) or not 0 <= i < len(params) or not isinstance(moments, dict):
+            raise InputError(f"{where}: opt.state must map parameters 0..{len(params) - 1} to their moments, "
+                             f"not {shown(i)} to {type_name(moments)}")
+        for k, v in moments.items():
+            shape = () if k == "step" else tuple(params[i].shape)
+            t = checkpoint.tensor(v, f"opt.state[{i}].{k}", where, shape)
+            if k.endswith("_sq") and bool((t < 0).any()):    # a mean of squares: its root would be NaN
+                raise InputError(f"{where}: opt.state[{i}].{k} must not be negative (a mean of squared gradients)")
+    try:
+        opt.load_state_dict(saved)
+    except (ValueError, KeyError, TypeError, RuntimeError) as e:
+        raise InputError(f"{where}: opt is not this model's optimiser state: {e}") from None
 
 
 def budget_fraction(state: TrainState, tcfg: TrainConfig) -> float:
@@ -133,7 +197,8 @@ def train(state: TrainState, data: SequenceData, tcfg: TrainConfig, ckpt: Path |
     ``tcfg.steps`` is reached; ``on_step(state, parts or None)`` after each step.
 
     A step whose loss or gradient is not finite is skipped (optimiser untouched) and counted;
-    ``max_bad_steps`` in a row end training with a :class:`DbbError`.
+    ``max_bad_steps`` in a row end training with a :class:`DbbError`, and so do weights that are
+    not finite at the end (a model that renders NaN is not written).
     """
     state.train_config = asdict(tcfg)
     state.model.train()
@@ -145,6 +210,10 @@ def train(state: TrainState, data: SequenceData, tcfg: TrainConfig, ckpt: Path |
         if ckpt is not None:             # an interrupted run resumes from here
             state.save(ckpt)
         raise
+    bad = [name for name, w in state.model.named_parameters() if not bool(torch.isfinite(w).all())]
+    if bad:
+        raise DbbError(f"training diverged: {len(bad)} weight tensors ({', '.join(bad[:2])} ...) are not finite "
+                       f"at step {state.step} (try a lower learning rate)")
     if ckpt is not None:
         state.save(ckpt)
     return state

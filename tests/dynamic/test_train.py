@@ -36,6 +36,23 @@ def test_nan_guard_skips_bad_steps_and_gives_up_when_diverged(data, monkeypatch)
         train(TrainState.new(m, tc), data, replace(tc, steps=10))
 
 
+def test_weights_that_end_not_finite_are_refused_not_written(data, monkeypatch, tmp_path):
+    tc = TrainConfig(steps=1, batch=2, ema=0.0)
+    st = TrainState.new(Rssm(SMALL), tc)
+    ck = tmp_path / "checkpoint.pt"
+    real_step = st.opt.step
+
+    def poisoned_step(*a, **k):         # a step that is taken but leaves a weight NaN
+        real_step(*a, **k)
+        with torch.no_grad():
+            next(st.model.parameters()).view(-1)[0] = float("nan")
+
+    monkeypatch.setattr(st.opt, "step", poisoned_step)
+    with pytest.raises(DbbError, match="diverged: 1 weight tensors"):
+        train(st, data, tc, ckpt=ck)
+    assert read_checkpoint(ck).step == 0        # the checkpoint from before the first step
+
+
 def test_tiny_overfit_loss_drops(data):
     torch.manual_seed(0)
     tc = TrainConfig(steps=40, batch=4, lr=2e-3, augment="none")      # the same windows, learned
@@ -108,4 +125,4 @@ def test_checkpoints_resume_the_state_and_refuse_older_ones(data, tmp_path):
     old = {k: v for k, v in torch.load(ck, weights_only=False).items() if k not in ("format", "version")}
     torch.save(old, tmp_path / "old.pt")
     with pytest.raises(DbbError, match="older version: train the run again"):
-        read_checkpoint(tmp_path / "old.pt", torch.device("cpu"))
+        read_checkpoint(tmp_path / "old.pt")
