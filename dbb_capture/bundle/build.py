@@ -91,10 +91,12 @@ def _need(run: Path, *names: str) -> None:
 
 def build_static(r, tmp: Path, dataset: Path | None, prog) -> Manifest:
     """The static bundle of the PlenOctree run ``r`` (:class:`~..static.run.Run`) into ``tmp``."""
+    from ..octree.tree import PlenOctree
     from ..static.run import RUN_FORMAT
 
     run, rec = r.path, r.record
     _need(run, rec.tree.file, r.density_grid_path.name)
+    PlenOctree.load(r.tree_path)        # a damaged tree is refused here, not copied into the bundle
     center, radius = np.asarray(rec.volume.center, float), float(rec.volume.radius)
     up, cams, board_frame = _dataset_cameras(_run_dataset(rec.dataset, run, dataset))
     T = bundle_from_board(center, up)

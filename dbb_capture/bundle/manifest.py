@@ -23,6 +23,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
+import re
 import tempfile
 import zipfile
 from collections.abc import Iterator
@@ -31,8 +32,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.errors import DbbError
+from ..core.errors import DbbError, InputError
+from ..core.fields import entry, number, numbers, shown, text, type_name
 from ..core.outputs import write_json
+from ..octree.npz import DAMAGED, ZIP_MAGIC, check_zip_headers, reason
 
 FORMAT = "deep-billboard"
 
@@ -46,10 +49,9 @@ MANIFEST = "manifest.json"
 CHECKSUM = "manifest.sha256"
 
 
-# What readers of each kind look up (besides the fields every manifest has).
-_KIND_KEYS = {"static": (("model", "file"),),
-              "dynamic": (("model", "file"), ("inputs", "frame_size"), ("inputs", "crop_fill"),
-                          ("inputs", "first_frame"), ("inputs", "first_view"), ("previews", "rollout"))}
+MAX_RADIUS_M = 1000.0       # an object sphere wider than this is a damaged number, not a billboard
+MAX_PREVIEW_PX = 4096       # previews' cells and model frames are at most this many pixels a side
+_SHA256 = re.compile(r"[0-9a-f]{64}")
 
 
 @dataclass(frozen=True)
@@ -86,38 +88,52 @@ class Manifest:
 
     @classmethod
     def from_json(cls, d: object, where: str = MANIFEST) -> Manifest:
-        """Validate the schema; a foreign or broken manifest gives one clear :class:`DbbError`."""
-        if not isinstance(d, dict) or d.get("format") != FORMAT:
-            got = d.get("format") if isinstance(d, dict) else type(d).__name__
-            raise DbbError(f"{where} is not a deep-billboard manifest (format {got!r})")
-        if not isinstance(d.get("version"), int) or d["version"] > VERSION:
-            raise DbbError(f"{where}: bundle version {d.get('version')!r} is not supported (this tool reads <= {VERSION})")
-        need = [f for f in ("kind", "model", "inputs", "proxy_mesh", "bundle_from_board", "object", "up",
-                            "canvas", "previews", "created", "files") if f not in d]
-        if need:
-            raise DbbError(f"{where}: missing {', '.join(need)}")
-        if d["kind"] not in ("static", "dynamic"):
-            raise DbbError(f"{where}: kind must be static or dynamic, not {d['kind']!r}")
-        need = _KIND_KEYS[d["kind"]] + (("object", "center"), ("object", "radius"), ("proxy_mesh", "file"),
-                                        ("previews", "sheet"), ("previews", "cell_px"))
-        lacking = [f"{a}.{b}" for a, b in need if not isinstance(d[a], dict) or b not in d[a]]
-        if lacking:
-            raise DbbError(f"{where}: missing {', '.join(lacking)}")
-        try:
-            T = np.asarray(d["bundle_from_board"], float)
-        except (TypeError, ValueError):
-            T = np.zeros(0)
-        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-            raise DbbError(f"{where}: bundle_from_board must be a 4x4 matrix")
-        try:
-            files = [FileEntry(str(e["path"]), str(e["sha256"]), int(e["bytes"])) for e in d["files"]]
-        except (TypeError, KeyError, ValueError):
-            raise DbbError(f"{where}: files must be [{{path, sha256, bytes}}]") from None
+        """Validate every entry a reader relies on, once; a foreign or broken manifest gives one
+        clear :class:`DbbError` naming the entry and what it must be."""
+        fmt = entry(d, "format", where, None)
+        if fmt != FORMAT:
+            raise InputError(f"{where} is not a deep-billboard manifest (format {shown(fmt)})")
+        raw = entry(d, "version", where)
+        version = number(raw, "version", where, low=0, integer=True)
+        if version > VERSION:
+            raise InputError(f"{where}: bundle version {shown(raw)} is not supported (this tool reads <= {VERSION})")
+        kind = text(entry(d, "kind", where), "kind", where)
+        if kind not in ("static", "dynamic"):
+            raise InputError(f"{where}: kind must be static or dynamic, not {shown(kind)}")
+        model, inputs, proxy, obj, canvas, previews = (
+            _object(d, k, where) for k in ("model", "inputs", "proxy_mesh", "object", "canvas", "previews"))
+        named = [_file(model, "model", where), _file(proxy, "proxy_mesh", where)]
+        T = _rigid(entry(d, "bundle_from_board", where), "bundle_from_board", where)
+        numbers(entry(obj, "center", f"{where}: object"), "object.center", where, (3,))
+        number(entry(obj, "radius", f"{where}: object"), "object.radius", where, low=0, low_open=True,
+               high=MAX_RADIUS_M, unit=" m")
+        _unit(entry(d, "up", where), "up", where)
+        number(entry(canvas, "size_m", f"{where}: canvas"), "canvas.size_m", where, low=0, low_open=True,
+               unit=" m")
+        act = entry(d, "colour_activation", where, None)
+        if act is not None:
+            text(act, "colour_activation", where)
+        number(entry(previews, "cell_px", f"{where}: previews"), "previews.cell_px", where, low=1,
+               high=MAX_PREVIEW_PX, integer=True)
+        named.append(_views_file(previews, "sheet", where))
+        if kind == "dynamic":
+            number(entry(inputs, "frame_size", f"{where}: inputs"), "inputs.frame_size", where, low=1,
+                   high=MAX_PREVIEW_PX, integer=True)
+            number(entry(inputs, "crop_fill", f"{where}: inputs"), "inputs.crop_fill", where, low=0,
+                   low_open=True, high=1)
+            numbers(entry(inputs, "first_view", f"{where}: inputs"), "inputs.first_view", where, (3,))
+            named.append(text(entry(inputs, "first_frame", f"{where}: inputs"), "inputs.first_frame", where))
+            named.append(_rollout(previews, where))
+        _object(d, "created", where)
+        files = _files(entry(d, "files", where), where)
+        unlisted = sorted(set(named) - {e.path for e in files})
+        if unlisted:
+            raise InputError(f"{where}: files does not list {', '.join(unlisted[:3])}, which the manifest names")
         plane = d.get("support_plane")
         if plane is not None and support_plane_of(plane) is None:
-            raise DbbError(f"{where}: support_plane must be {{point: [x, y, z], normal: [x, y, z]}} (unit normal)")
-        return cls(d["kind"], d["model"], d["inputs"], d["proxy_mesh"], T.tolist(), d["object"], d["up"],
-                   d["canvas"], d.get("colour_activation"), d["previews"], d["created"], files, plane)
+            raise InputError(f"{where}: support_plane must be {{point: [x, y, z], normal: [x, y, z]}} (unit normal)")
+        return cls(kind, model, inputs, proxy, T.tolist(), obj, d["up"], canvas, act, previews, d["created"],
+                   files, plane, version=version)
 
     @property
     def T(self) -> np.ndarray:
@@ -135,6 +151,83 @@ class Manifest:
     def support(self) -> tuple[np.ndarray, np.ndarray] | None:
         """The support plane in bundle space: (point (3,), unit normal (3,)), or None."""
         return None if self.support_plane is None else support_plane_of(self.support_plane)
+
+
+def _object(d: dict, key: str, where: str) -> dict:
+    """``d[key]``, which must be a JSON object."""
+    v = entry(d, key, where)
+    if not isinstance(v, dict):
+        raise InputError(f"{where}: {key} must be an object, not {type_name(v)} ({shown(v)})")
+    return v
+
+
+def _file(d: dict, name: str, where: str) -> str:
+    """``d["file"]``: a bundle-relative path (``name`` is the entry holding ``d``)."""
+    return text(entry(d, "file", f"{where}: {name}"), f"{name}.file", where)
+
+
+def _rigid(value: object, name: str, where: str) -> np.ndarray:
+    """``value`` as a rigid 4x4 transform (rotation and translation; last row 0 0 0 1)."""
+    if not isinstance(value, list) or len(value) != 4:
+        raise InputError(f"{where}: {name} must be a 4x4 list of numbers, not {type_name(value)} ({shown(value)})")
+    T = np.array([numbers(row, f"{name}[{i}]", where, (4,)) for i, row in enumerate(value)])
+    R = T[:3, :3]
+    if not np.allclose(T[3], [0, 0, 0, 1]) or not np.allclose(R @ R.T, np.eye(3), atol=1e-4) \
+            or np.linalg.det(R) < 0:
+        raise InputError(f"{where}: {name} must be a rigid transform (a rotation, a translation, last row 0 0 0 1)")
+    return T
+
+
+def _unit(value: object, name: str, where: str) -> list[float]:
+    """``value`` as a unit 3-vector."""
+    v = numbers(value, name, where, (3,))
+    if abs(float(np.linalg.norm(v)) - 1.0) > 1e-3:
+        raise InputError(f"{where}: {name} must be a unit vector, not {shown(v)}")
+    return v
+
+
+def _views(value: object, name: str, where: str) -> None:
+    """``value`` as a non-empty list of [azimuth_deg, elevation_deg, distance_m] views."""
+    if not isinstance(value, list) or not value:
+        raise InputError(f"{where}: {name} must be a list of [azimuth_deg, elevation_deg, distance_m], "
+                         f"not {type_name(value)} ({shown(value)})")
+    for i, v in enumerate(value):
+        distance = numbers(v, f"{name}[{i}]", where, (3,))[2]
+        number(distance, f"{name}[{i}] distance", where, low=0, low_open=True, unit=" m")
+
+
+def _views_file(previews: dict, key: str, where: str) -> str:
+    """Checks ``previews[key]`` (a tiled preview image: file, columns, views); returns its file."""
+    p = _object(previews, key, f"{where}: previews")
+    number(entry(p, "columns", f"{where}: previews.{key}"), f"previews.{key}.columns", where, low=1, integer=True)
+    _views(entry(p, "views", f"{where}: previews.{key}"), f"previews.{key}.views", where)
+    return _file(p, f"previews.{key}", where)
+
+
+def _rollout(previews: dict, where: str) -> str:
+    """Checks ``previews.rollout`` (file, columns, seed, rows.still) of a dynamic bundle; returns its file."""
+    p = _object(previews, "rollout", f"{where}: previews")
+    number(entry(p, "columns", f"{where}: previews.rollout"), "previews.rollout.columns", where, low=1, integer=True)
+    number(entry(p, "seed", f"{where}: previews.rollout"), "previews.rollout.seed", where, low=0, integer=True)
+    rows = _object(p, "rows", f"{where}: previews.rollout")
+    _views(entry(rows, "still", f"{where}: previews.rollout.rows"), "previews.rollout.rows.still", where)
+    return _file(p, "previews.rollout", where)
+
+
+def _files(value: object, where: str) -> list[FileEntry]:
+    """The ``files`` list: {path, sha256, bytes} of every file but the manifest and its checksum."""
+    if not isinstance(value, list):
+        raise InputError(f"{where}: files must be a list of {{path, sha256, bytes}}, not {type_name(value)}")
+    out = []
+    for i, e in enumerate(value):
+        name = f"files[{i}]"
+        path = text(entry(e, "path", f"{where}: {name}"), f"{name}.path", where)
+        digest = text(entry(e, "sha256", f"{where}: {name}"), f"{name}.sha256", where)
+        if not _SHA256.fullmatch(digest):
+            raise InputError(f"{where}: {name}.sha256 must be 64 hex digits, not {shown(digest)}")
+        size = number(entry(e, "bytes", f"{where}: {name}"), f"{name}.bytes", where, low=0, integer=True)
+        out.append(FileEntry(path, digest, int(size)))
+    return out
 
 
 def support_plane_of(d: object) -> tuple[np.ndarray, np.ndarray] | None:
@@ -189,14 +282,24 @@ class Bundle:
         return p
 
 
-def _safe_extract(zf: zipfile.ZipFile, dest: Path, where: Path) -> None:
-    for name in zf.namelist():
-        if name.startswith("/") or ".." in Path(name).parts:
-            raise DbbError(f"{where}: zip member {name!r} points outside the bundle")
+def _extract(path: Path, dest: Path) -> None:
+    """Unpack the ``.dbb`` zip ``path`` into ``dest``: every member's name inside the bundle,
+    its header consistent and its bytes matching their CRC, or one clear error."""
+    with open(path, "rb") as f:
+        head = f.read(4)
+    if head not in ZIP_MAGIC:
+        raise DbbError(f"{path} is neither a bundle folder nor a .dbb zip")
     try:
-        zf.extractall(dest)
-    except (zipfile.BadZipFile, OSError, EOFError) as e:
-        raise DbbError(f"{where} is a corrupt bundle zip: {e}") from None
+        with zipfile.ZipFile(path) as zf:
+            check_zip_headers(zf, f"bundle zip {path}")
+            for name in zf.namelist():
+                if name.startswith("/") or ".." in Path(name).parts:
+                    raise DbbError(f"{path}: zip member {name!r} points outside the bundle")
+            zf.extractall(dest)
+    except DbbError:
+        raise
+    except DAMAGED as e:
+        raise DbbError(f"bundle zip {path} is damaged ({reason(e)})") from None
 
 
 @contextlib.contextmanager
@@ -208,14 +311,8 @@ def open_bundle(path: Path) -> Iterator[Bundle]:
         return
     if not path.is_file():
         raise DbbError(f"bundle not found: {path}")
-    if not zipfile.is_zipfile(path):
-        raise DbbError(f"{path} is neither a bundle folder nor a .dbb zip")
     with tempfile.TemporaryDirectory(prefix="dbb-bundle-") as tmp:
-        try:
-            with zipfile.ZipFile(path) as zf:
-                _safe_extract(zf, Path(tmp), path)
-        except zipfile.BadZipFile as e:
-            raise DbbError(f"{path} is a corrupt bundle zip: {e}") from None
+        _extract(path, Path(tmp))
         yield Bundle(Path(tmp), path, _read_manifest(Path(tmp), path))
 
 

@@ -19,6 +19,7 @@ convex hull), the suffixes Godot reads as collision shapes.
 
 from __future__ import annotations
 
+import io
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -388,16 +389,52 @@ def with_buffer_targets(glb: bytes) -> bytes:
     return struct.pack("<4sII", b"glTF", version, 12 + len(out)) + out
 
 
+_GLB_MAGIC, _JSON_CHUNK, _BIN_CHUNK = b"glTF", b"JSON", b"BIN\x00"
+
+
+def check_glb_layout(data: bytes, path: Path) -> None:
+    """Refuse a ``.glb`` whose 12-byte header or chunk lengths disagree with its bytes (the
+    glTF 2.0 binary layout: magic, version 2, total length, then a JSON chunk and an optional
+    BIN chunk): trimesh reads past such damage, a viewer may not."""
+    import struct
+
+    if len(data) < 20 or data[:4] != _GLB_MAGIC:
+        raise DbbError(f"the proxy mesh {path} is not a binary glTF (.glb) file")
+    version, length = struct.unpack_from("<II", data, 4)
+    if version != 2 or length != len(data):
+        raise DbbError(f"the proxy mesh {path} is damaged: its header says glTF {version}, {length} bytes "
+                       f"(the file has {len(data)})")
+    at, kinds = 12, []
+    while at < len(data):
+        if at + 8 > len(data):
+            raise DbbError(f"the proxy mesh {path} is damaged: a chunk header is cut short")
+        n, kind = struct.unpack_from("<I4s", data, at)
+        if at + 8 + n > len(data) or n % 4:
+            raise DbbError(f"the proxy mesh {path} is damaged: a chunk of {n} bytes does not fit the file")
+        kinds.append(kind)
+        at += 8 + n
+    if kinds[:1] != [_JSON_CHUNK] or any(k != _BIN_CHUNK for k in kinds[1:2]):
+        raise DbbError(f"the proxy mesh {path} is damaged: its chunks are {[k.decode('latin-1') for k in kinds]}")
+
+
 def read_glb(path: Path) -> dict:
     """Meshes of a ``.glb`` by node name: {name: trimesh.Trimesh} (in the file's space)."""
     import trimesh
 
     try:
-        scene = trimesh.load(Path(path), file_type="glb", force="scene", process=False)
+        data = Path(path).read_bytes()
+    except OSError as e:
+        raise DbbError(f"cannot read the proxy mesh {path}: {e.strerror or e}") from None
+    check_glb_layout(data, path)
+    try:
+        scene = trimesh.load(io.BytesIO(data), file_type="glb", force="scene", process=False)
+        out = {}
+        for node in scene.graph.nodes_geometry:
+            T, geom = scene.graph[node]
+            out[node] = scene.geometry[geom].copy().apply_transform(T)
     except Exception as e:  # noqa: BLE001 - trimesh raises many kinds on a corrupt file
-        raise DbbError(f"cannot read the proxy mesh {path}: {e}") from None
-    out = {}
-    for node in scene.graph.nodes_geometry:
-        T, geom = scene.graph[node]
-        out[node] = scene.geometry[geom].copy().apply_transform(T)
+        raise DbbError(f"cannot read the proxy mesh {path}: {' '.join(str(e).split())[:120]}") from None
+    bad = sorted(n for n, m in out.items() if not np.isfinite(np.asarray(m.vertices)).all())
+    if bad:
+        raise DbbError(f"the proxy mesh {path} is damaged: node {bad[0]} has non-finite vertices")
     return out

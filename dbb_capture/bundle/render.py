@@ -167,12 +167,13 @@ def render_bundle(bundle: Path, cameras: Path, out: Path, first_frame: Path | No
         views = read_cameras(cameras, m.T if space == "bundle" else None)
         if first_frame is not None and m.kind == "static":
             raise DbbError("{=first_frame} applies to dynamic bundles only; this bundle is static")
+        # The model is read (and checked) before the output folder is made.
+        r = StaticRenderer(b.file(m.model["file"])) if m.kind == "static" else DynamicRenderer(b)
         with atomic_dir(Path(out), overwrite or empty_dir(out)) as tmp, progress() as prog:
             task = prog.add_task("render", total=len(views), info=m.kind)
-            if m.kind == "static":
-                imgs = StaticRenderer(b.file(m.model["file"])).render(views, lambda: prog.advance(task))
+            if isinstance(r, StaticRenderer):
+                imgs = r.render(views, lambda: prog.advance(task))
             else:
-                r = DynamicRenderer(b)
                 vv = np.stack([r.view_of(v) for v in views])
                 first = read_rgba(first_frame) if first_frame is not None else None
                 crops = r.frames(vv, first, vv[0] if first is not None else None)

@@ -19,7 +19,7 @@ import torch
 from ..core.errors import DbbError
 from ..geometry.cameras import Intrinsics
 from ..geometry.sh import sh_basis
-from .tree import PlenOctree, leaf_cells
+from .tree import COLOUR_ACTIVATIONS, PlenOctree, leaf_cells
 
 BRICK = 8            # leaves per brick side in the renderers' two-level lookup
 _RAY_CHUNK = 4096    # rays per work item of the numba renderer's threads (64 8x8 tiles)
@@ -412,7 +412,7 @@ class TreeRenderer:
     def __init__(self, tree: PlenOctree, device: torch.device | str = "cpu", t_min: float = 1e-2,
                  chunk_samples: int = 48, backend: str = "auto", step: float = 0.5, w_min: float = 5e-3,
                  threads: int | None = None):
-        if tree.colour_activation not in ("sigmoid", "relu_shift"):
+        if tree.colour_activation not in COLOUR_ACTIVATIONS:
             raise DbbError(f"unknown colour activation {tree.colour_activation!r}")
         device = torch.device(device)
         if backend == "auto":

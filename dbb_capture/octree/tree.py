@@ -26,8 +26,11 @@ import numpy as np
 from ..core.errors import DbbError
 from ..core.outputs import write_bytes_atomic
 from ..geometry.sh import COLOUR_ACTIVATION
+from .npz import read_npz
 
 SH_FORMATS = {1: "SH1", 4: "SH4", 9: "SH9", 16: "SH16"}   # data_format by SH coefficients per channel
+COLOUR_ACTIVATIONS = ("sigmoid", "relu_shift")            # what the renderers apply to the SH sum
+MAX_DEPTH = 10      # a 2048^3 leaf lattice: the renderer's brick grid of deeper trees outgrows memory
 
 
 @dataclass
@@ -87,26 +90,80 @@ class PlenOctree:
 
     @classmethod
     def load(cls, path: Path) -> PlenOctree:
-        """Read a svox ``.npz`` (ours or svox's). Trees without a recorded activation are
-        svox's own, whose colour activation is sigmoid."""
-        try:
-            z = np.load(Path(path))
-        except (OSError, ValueError) as e:
-            raise DbbError(f"cannot read PlenOctree {path}: {e}") from None
-        need = {"data", "child", "parent_depth", "offset", "depth_limit"}
-        if not need <= set(z.files) or not ({"invradius3", "invradius"} & set(z.files)):
-            raise DbbError(f"{path} is not a svox N3Tree npz (missing {sorted(need - set(z.files))})")
-        child = z["child"]
-        if child.ndim != 4 or child.shape[1:] != (2, 2, 2):
-            raise DbbError(f"{path}: only branching factor 2 trees are supported")
-        n = int(z["n_internal"]) if "n_internal" in z.files else child.shape[0]
-        inv = z["invradius3"] if "invradius3" in z.files else np.full(3, float(z["invradius"]))
-        fmt = str(z["data_format"]) if "data_format" in z.files else "RGBA"
-        act = str(z["dbb_colour_activation"]) if "dbb_colour_activation" in z.files else "sigmoid"
-        if not fmt.startswith("SH"):
-            raise DbbError(f"{path}: data_format {fmt} is not supported (need SH1/SH4/SH9/SH16)")
-        return cls(z["data"][:n], child[:n], z["parent_depth"][:n], np.asarray(inv, np.float32).reshape(3),
-                   np.asarray(z["offset"], np.float32).reshape(3), int(z["depth_limit"]), fmt, act)
+        """Read a svox ``.npz`` (ours or svox's), every array checked once (names, dtypes, shapes,
+        child offsets, finite values) so a damaged file is one clear :class:`DbbError` naming the
+        array instead of a crash or a wrong render later. Trees without a recorded activation
+        are svox's own, whose colour activation is sigmoid."""
+        return _checked_tree(read_npz(Path(path), "PlenOctree"), Path(path))
+
+
+def _scalar(a: dict[str, np.ndarray], key: str, path: Path, low: int, high: int) -> int:
+    """Integer scalar array ``a[key]`` in [``low``, ``high``]."""
+    v = a[key]
+    if v.shape != () or not np.issubdtype(v.dtype, np.integer) or not low <= int(v) <= high:
+        raise DbbError(f"{path}: {key} must be a whole number in {low}..{high}, not {_shown(v)}")
+    return int(v)
+
+
+def _shown(v: np.ndarray) -> str:
+    """An array as a few words: its value when small, else its dtype and shape."""
+    if v.size <= 3 and v.dtype.kind in "iufUSb":
+        return str(v.tolist())
+    return f"{v.dtype} array of shape {v.shape}"
+
+
+def _vector3(a: dict[str, np.ndarray], key: str, path: Path, positive: bool = False) -> np.ndarray:
+    """Three finite (``positive``: and > 0) floats ``a[key]`` (a scalar is taken for all three)."""
+    v = a[key]
+    ok = v.dtype.kind in "iuf" and v.size in (1, 3)
+    f = np.broadcast_to(v.astype(np.float64).reshape(-1), (3,)) if ok else np.zeros(3)
+    if not ok or not np.isfinite(f).all() or (positive and not (f > 0).all()):
+        rule = "positive " if positive else ""
+        raise DbbError(f"{path}: {key} must be 3 finite {rule}numbers, not {_shown(v)}")
+    return f.astype(np.float32)
+
+
+def _checked_tree(a: dict[str, np.ndarray], path: Path) -> PlenOctree:
+    """The tree of svox arrays ``a`` read from ``path``, refused (naming the array) unless the
+    arrays agree with each other: a renderer walking a bad child offset reads out of bounds."""
+    lacking = sorted({"data", "child", "parent_depth", "offset", "depth_limit"} - set(a))
+    if lacking or not ({"invradius3", "invradius"} & set(a)):
+        raise DbbError(f"{path} is not a svox N3Tree npz (missing {', '.join(lacking or ['invradius3'])})")
+    child, data, pd = a["child"], a["data"], a["parent_depth"]
+    if not np.issubdtype(child.dtype, np.integer) or child.ndim != 4 or child.shape[1:] != (2, 2, 2) \
+            or len(child) == 0:
+        raise DbbError(f"{path}: child must be an integer array (nodes, 2, 2, 2) (branching 2), not {_shown(child)}")
+    cap = len(child)
+    if data.dtype.kind != "f" or data.ndim != 5 or data.shape[1:4] != (2, 2, 2) or len(data) < cap:
+        raise DbbError(f"{path}: data must be a float array ({cap} nodes, 2, 2, 2, channels), not {_shown(data)}")
+    if not np.issubdtype(pd.dtype, np.integer) or pd.shape != (len(pd), 2) or len(pd) < cap:
+        raise DbbError(f"{path}: parent_depth must be an integer array ({cap} nodes, 2), not {_shown(pd)}")
+    n = _scalar(a, "n_internal", path, 1, cap) if "n_internal" in a else cap
+    depth_limit = _scalar(a, "depth_limit", path, 0, MAX_DEPTH)
+    fmt = str(a["data_format"]) if "data_format" in a else "RGBA"
+    basis = next((k for k, v in SH_FORMATS.items() if v == fmt), None)
+    if basis is None:
+        raise DbbError(f"{path}: data_format {fmt[:20]} is not supported (need {'/'.join(SH_FORMATS.values())})")
+    if data.shape[-1] != 3 * basis + 1:
+        raise DbbError(f"{path}: data has {data.shape[-1]} channels, data_format {fmt} needs {3 * basis + 1}")
+    act = str(a["dbb_colour_activation"]) if "dbb_colour_activation" in a else "sigmoid"
+    if act not in COLOUR_ACTIVATIONS:
+        raise DbbError(f"{path}: dbb_colour_activation {act[:20]} is not one of {', '.join(COLOUR_ACTIVATIONS)}")
+    child, data, pd = child[:n], data[:n], pd[:n]
+    # Children come after their parent (svox allocates them so): no offset may point back or out.
+    node = np.arange(n).reshape(n, 1, 1, 1)
+    if ((child < 0) | (node + child.astype(np.int64) >= n)).any():
+        raise DbbError(f"{path}: child holds offsets outside the tree's {n} nodes")
+    depth = pd[:, 1]
+    if depth[0] != 0 or ((depth[1:] < 1) | (depth[1:] > depth_limit)).any():
+        raise DbbError(f"{path}: parent_depth holds depths outside 0..depth_limit {depth_limit}")
+    if ((pd[1:, 0] < 0) | (pd[1:, 0] >= 8 * n)).any():
+        raise DbbError(f"{path}: parent_depth holds parent cells outside the tree's {n} nodes")
+    if not np.isfinite(data).all():
+        raise DbbError(f"{path}: data holds NaN or infinite values")
+    inv = _vector3(a, "invradius3" if "invradius3" in a else "invradius", path, positive=True)
+    offset = _vector3(a, "offset", path)
+    return PlenOctree(data, child, pd, inv, offset, depth_limit, fmt, act)
 
 
 def build_tree(cells: np.ndarray, values: np.ndarray, depth: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

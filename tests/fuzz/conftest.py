@@ -184,8 +184,9 @@ def static_bundle_zip(static_bundle, tmp_path_factory) -> Path:
 
 
 def reseal(bundle: Path) -> None:
-    """Write ``bundle``'s manifest files list and checksum again for its files as they are now,
-    so a corruption reaches the reader of that file instead of failing the hash check."""
+    """Write the hashes and sizes of the files ``bundle``'s manifest lists and its checksum again
+    for the files as they are now, so a corruption reaches the reader of that file instead of
+    failing the hash check (a damaged list itself is kept as it is)."""
     from dbb_capture.bundle.manifest import CHECKSUM, MANIFEST, file_entries, sha256_of
 
     try:
@@ -193,8 +194,11 @@ def reseal(bundle: Path) -> None:
     except (UnicodeDecodeError, json.JSONDecodeError):
         m = None            # damaged text: only the checksum is written again
     if isinstance(m, dict) and isinstance(m.get("files"), list):
-        m["files"] = [{"path": e.path, "sha256": e.sha256, "bytes": e.bytes} for e in file_entries(bundle)]
-        (bundle / MANIFEST).write_text(json.dumps(m, indent=2))
+        now = {e.path: e for e in file_entries(bundle)}
+        for e in m["files"]:
+            if isinstance(e, dict) and e.get("path") in now:
+                e.update(sha256=now[e["path"]].sha256, bytes=now[e["path"]].bytes)
+        (bundle / MANIFEST).write_text(json.dumps(m, indent=2, allow_nan=True))
     (bundle / CHECKSUM).write_text(f"{sha256_of(bundle / MANIFEST)}  {MANIFEST}\n")
 
 

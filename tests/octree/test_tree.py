@@ -84,3 +84,20 @@ def test_load_rejects_what_is_not_a_tree(tmp_path):
     for name in ("other.npz", "text.npz", "missing.npz"):
         with pytest.raises(DbbError):
             PlenOctree.load(tmp_path / name)
+
+
+def test_load_refuses_arrays_that_disagree_naming_the_array(tmp_path):
+    tree = random_tree(seed=2)
+    tree.save(tmp_path / "ok.npz")
+    with np.load(tmp_path / "ok.npz") as z:
+        good = {k: z[k] for k in z.files}
+    bad = {"child": {"child": good["child"] + 10 ** 6}, "data": {"data": np.full_like(good["data"], np.nan)},
+           "invradius3": {"invradius3": np.zeros(3, np.float32)}, "depth_limit": {"depth_limit": np.int64(-1)},
+           "data_format": {"data_format": np.array("SH5")}, "n_internal": {"n_internal": np.int64(10 ** 9)}}
+    for name, change in bad.items():
+        np.savez(tmp_path / f"{name}.npz", **(good | change))
+        with pytest.raises(DbbError, match=name):
+            PlenOctree.load(tmp_path / f"{name}.npz")
+    (tmp_path / "empty.npz").write_bytes(b"")
+    with pytest.raises(DbbError, match="empty"):
+        PlenOctree.load(tmp_path / "empty.npz")
