@@ -27,15 +27,17 @@ def shown(value: Any) -> str:
     return text if len(text) <= 40 else text[:37] + "..."
 
 
-def entry(doc: Any, key: str, where: str, default: Any = MISSING) -> Any:
+def entry(doc: Any, key: str, where: str, default: Any = MISSING, parent: str = "") -> Any:
     """``doc[key]`` of the JSON object ``doc``; ``default`` where it is absent (or an error
-    naming the entry when no default is given)."""
+    naming the entry when no default is given). ``parent`` names ``doc`` inside the file
+    (``frames[0]``), so messages say ``frames[0].file_path``."""
     if not isinstance(doc, dict):
-        raise InputError(f"{where}: expected a JSON object, got {type_name(doc)}")
+        what = f"{parent} must be" if parent else "expected"
+        raise InputError(f"{where}: {what} a JSON object, not {type_name(doc)} ({shown(doc)})")
     if key in doc:
         return doc[key]
     if default is MISSING:
-        raise InputError(f"{where}: {key} is missing")
+        raise InputError(f"{where}: {parent + '.' if parent else ''}{key} is missing")
     return default
 
 
@@ -52,14 +54,14 @@ def number(value: Any, name: str, where: str, *, low: float | None = None, high:
         raise InputError(f"{where}: {name} must be a number, not {type_name(value)} ({shown(value)})")
     if not math.isfinite(value):
         raise InputError(f"{where}: {name} must be a finite number, not {shown(value)}")
-    if integer and float(value) != int(value):
-        raise InputError(f"{where}: {name} must be a whole number, not {shown(value)}")
     bad = (low is not None and (value <= low if low_open else value < low)) or (high is not None and value > high)
-    if bad:
+    if bad:         # before the whole-number test: 1e30 is out of range more than it is not whole
         lo = "" if low is None else (f"above {low:g}" if low_open else f"at least {low:g}")
         hi = "" if high is None else f"at most {high:g}"
         rule = " and ".join(p for p in (lo, hi) if p)
         raise InputError(f"{where}: {name} {shown(value)}{unit} must be {rule}{unit}")
+    if integer and float(value) != int(value):
+        raise InputError(f"{where}: {name} must be a whole number, not {shown(value)}")
     return int(value) if integer else float(value)
 
 
@@ -85,3 +87,19 @@ def text(value: Any, name: str, where: str) -> str:
     if not isinstance(value, str):
         raise InputError(f"{where}: {name} must be a string, not {type_name(value)} ({shown(value)})")
     return value
+
+
+def matrix(value: Any, name: str, where: str, shapes: Sequence[tuple[int, int]] = ((4, 4),)) -> list[list[float]]:
+    """``value`` as a list of rows of finite numbers, (rows, columns) one of ``shapes``."""
+    want = " or ".join(f"{r}x{c}" for r, c in shapes)
+    if not isinstance(value, list) or not all(isinstance(r, list) for r in value):
+        got = (f"a flat list of {len(value)} values" if isinstance(value, list)
+               else f"{type_name(value)} ({shown(value)})")
+    elif len({len(r) for r in value}) > 1:
+        got = "rows of " + " and ".join(str(n) for n in sorted({len(r) for r in value})) + " values"
+    elif (len(value), len(value[0]) if value else 0) not in shapes:
+        got = f"{len(value)}x{len(value[0]) if value else 0}"
+    else:
+        return [[number(v, f"{name}[{i}][{j}]", where) for j, v in enumerate(r)] for i, r in enumerate(value)]
+    raise InputError(f"{where}: {name} must be a {want} list of numbers, not {got}")
+

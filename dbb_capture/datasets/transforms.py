@@ -19,22 +19,32 @@ does not insert an axis swap of its own.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from ..core.errors import InputError
+from ..core.fields import entry, text
 from ..core.outputs import read_json, write_json
 from ..geometry.cameras import Intrinsics
-from ..geometry.conventions import (
-    centre_from_corner_px,
-    corner_from_centre_px,
-    opencv_from_opengl,
-    opengl_from_opencv,
+from ..geometry.conventions import corner_from_centre_px, opengl_from_opencv
+from .entries import (
+    FOCAL_KEYS,
+    INTRINSIC_KEYS,
+    camera_to_world,
+    frame_list,
+    frame_split,
+    intrinsics,
+    object_volume,
+    optional_path,
+    optional_time,
+    source_frame,
+    touches_border,
+    up_vector,
+    version,
+    viewpoint,
 )
-from ..geometry.viewpoint import Viewpoint
 from .records import Frame, ObjectVolume, PosedDataset
 
 DATASET_FILES = ("crops.json", "transforms.json", "transforms_train.json")
@@ -73,37 +83,6 @@ def missing_crops(path: Path) -> str | None:
             f"`dbb-capture preprocess` without --stop-after to make them")
 
 
-def _intrinsics(d: dict, fallback: Intrinsics | None, size: tuple[int, int] | None,
-                where: str) -> Intrinsics:
-    """Intrinsics from nerfstudio keys in ``d`` over ``fallback``; ``size`` = (w, h) if known."""
-    base = fallback.to_json() if fallback is not None else {}
-    w = d.get("w", base.get("width", size[0] if size else None))
-    h = d.get("h", base.get("height", size[1] if size else None))
-    if w is None or h is None:
-        raise InputError(f"{where}: image size (w, h) missing")
-    w, h = int(w), int(h)
-    fx = d.get("fl_x", base.get("fx"))
-    fy = d.get("fl_y", base.get("fy"))
-    if fx is None and "camera_angle_x" in d:
-        fx = 0.5 * w / math.tan(0.5 * float(d["camera_angle_x"]))
-    if fy is None and "camera_angle_y" in d:
-        fy = 0.5 * h / math.tan(0.5 * float(d["camera_angle_y"]))
-    if fx is None and fy is None:
-        raise InputError(f"{where}: no focal length (fl_x/fl_y or camera_angle_x)")
-    fx = float(fx if fx is not None else fy)
-    fy = float(fy if fy is not None else fx)
-    # The file's principal point has the corner origin; a fallback (an Intrinsics) is OpenCV's
-    # already, and without either the image centre is (w - 1) / 2 in OpenCV's pixels.
-    cx = centre_from_corner_px(d["cx"]) if "cx" in d else float(base.get("cx", (w - 1) / 2))
-    cy = centre_from_corner_px(d["cy"]) if "cy" in d else float(base.get("cy", (h - 1) / 2))
-    model = d.get("camera_model", "OPENCV")
-    if model not in ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
-        raise InputError(f"{where}: camera_model {model!r} is not supported (use OPENCV)")
-    old = list(base.get("dist", [0.0] * 5))
-    dist = tuple(float(d.get(k, old[i])) for i, k in enumerate(("k1", "k2", "p1", "p2", "k3")))
-    return Intrinsics(w, h, fx, fy, cx, cy, dist)
-
-
 def _resolve_image(root: Path, file_path: str, where: str) -> Path:
     p = Path(file_path)
     if not p.is_absolute():
@@ -134,55 +113,66 @@ def _has_alpha(path: Path) -> bool:
 def load_dataset(path: Path) -> PosedDataset:
     """Read a dataset folder or json file into a :class:`PosedDataset`.
 
-    Raises :class:`InputError` with one clear line on any missing key, image or bad matrix.
+    Every entry is checked where it is read (:mod:`.entries`): one :class:`InputError` line
+    naming the file, the entry and what it must be, before any image is decoded beyond the first.
     """
     src = find_dataset_file(Path(path))
+    where = str(src)
     meta = read_json(src, "dataset")
-    if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
-        raise InputError(f"{src}: no frames")
+    raw = frame_list(meta, where)
     root = src.parent
-    if "crop_size" in meta and meta.get("dbb_dataset_version") != DATASET_VERSION:
-        raise InputError(f"{src} was written by an older version of dbb-capture preprocess "
-                         "(another principal point convention): preprocess the capture again")
+    _check_version(meta, where)
     kind = "crops" if src.name == "crops.json" else (
         "blender" if "fl_x" not in meta and "camera_angle_x" in meta else "transforms")
     top = None
-    if any(k in meta for k in ("fl_x", "fl_y", "camera_angle_x")):
+    if any(k in meta for k in FOCAL_KEYS):
         size = None
-        if "w" not in meta or "h" not in meta:
-            first = meta["frames"][0]
-            size = _image_size(_resolve_image(root, str(first.get("file_path", "")), str(src)))
-        top = _intrinsics(meta, None, size, str(src))
-    frames = []
-    for i, f in enumerate(meta["frames"]):
-        where = f"{src} frame {i}"
-        if "file_path" not in f or "transform_matrix" not in f:
-            raise InputError(f"{where}: needs file_path and transform_matrix")
-        img = _resolve_image(root, str(f["file_path"]), where)
-        if any(k in f for k in ("fl_x", "fl_y", "camera_angle_x", "w", "h")) or top is None:
-            size = None if ("w" in f and "h" in f) or top is not None else _image_size(img)
-            intr = _intrinsics(f, top, size, where)
-        else:
-            intr = top
-        m = _camera_to_world(f, where)
-        mask = _resolve_image(root, str(f["mask_path"]), where) if f.get("mask_path") else None
-        split = str(f.get("split", "train"))
-        if split not in ("train", "test"):
-            raise InputError(f"{where}: split must be train or test, not {split!r}")
-        seen = room = None
-        if f.get("observed_path") and f.get("background_path"):
-            seen = _resolve_image(root, str(f["observed_path"]), where)
-            room = _resolve_image(root, str(f["background_path"]), where)
-        frames.append(Frame(Path(f["file_path"]).stem, img, m, intr, split, mask,
-                            float(f["time"]) if f.get("time") is not None else None, seen, room,
-                            int(f["source_frame"]) if f.get("source_frame") is not None else None,
-                            _viewpoint(f.get("viewpoint"), where),
-                            bool(f["touches_border"]) if f.get("touches_border") is not None else None))
+        if "w" not in meta and "h" not in meta:      # Blender files: the size is the images'
+            first = text(entry(raw[0], "file_path", where, parent="frames[0]"), "frames[0].file_path", where)
+            size = _image_size(_resolve_image(root, first, f"{where}: frames[0].file_path"))
+        top = intrinsics(meta, None, size, where)
+    if "up" in meta:
+        up_vector(meta["up"], where)
+    frames = [_frame(f, f"frames[{i}]", root, top, where) for i, f in enumerate(raw)]
     rgba = (kind in ("crops", "blender") or any(fr.mask_path is not None for fr in frames)
             or _has_alpha(frames[0].image_path))
-    volume = _read_volume(meta, root)
+    volume = _read_volume(meta, root, where)
     return PosedDataset(src, kind, frames, rgba, volume,
                         {k: v for k, v in meta.items() if k not in ("frames",)})
+
+
+def _check_version(meta: dict, where: str) -> None:
+    """A crops.json must be of :data:`DATASET_VERSION` (another principal point convention before)."""
+    v = version(meta, where)
+    if "crop_size" not in meta and v is None:
+        return
+    if v is None or v < DATASET_VERSION:
+        raise InputError(f"{where} was written by an older version of dbb-capture preprocess "
+                         "(another principal point convention): preprocess the capture again")
+    if v > DATASET_VERSION:
+        raise InputError(f"{where}: dbb_dataset_version {v} is newer than this dbb-capture reads "
+                         f"({DATASET_VERSION}): update dbb-capture")
+
+
+def _frame(f: dict, at: str, root: Path, top: Intrinsics | None, where: str) -> Frame:
+    """One ``frames[]`` entry ``f`` (named ``at``) of a dataset in folder ``root``."""
+    file_path = text(entry(f, "file_path", where, parent=at), f"{at}.file_path", where)
+    c2w = camera_to_world(entry(f, "transform_matrix", where, parent=at), f"{at}.transform_matrix", where)
+    img = _resolve_image(root, file_path, f"{where}: {at}.file_path")
+    if top is None or any(k in f for k in INTRINSIC_KEYS):
+        size = None if "w" in f or "h" in f or top is not None else _image_size(img)
+        intr = intrinsics(f, top, size, where, f"{at}.")
+    else:
+        intr = top
+    mask = optional_path(f, "mask_path", where, at)
+    seen, room = (optional_path(f, k, where, at) for k in ("observed_path", "background_path"))
+    both = seen is not None and room is not None
+    return Frame(Path(file_path).stem, img, c2w, intr, frame_split(f, where, at),
+                 _resolve_image(root, mask, f"{where}: {at}.mask_path") if mask else None,
+                 optional_time(f, where, at),
+                 _resolve_image(root, seen, f"{where}: {at}.observed_path") if both else None,
+                 _resolve_image(root, room, f"{where}: {at}.background_path") if both else None,
+                 source_frame(f, where, at), viewpoint(f, where, at), touches_border(f, where, at))
 
 
 def load_cameras(path: Path) -> list[Frame]:
@@ -190,21 +180,19 @@ def load_cameras(path: Path) -> list[Frame]:
     camera-to-world): frames named after the basename of their ``file_path``, whose images need
     not exist (``image_path`` is the path as written). One clear :class:`InputError` otherwise."""
     path = Path(path)
+    where = str(path)
     meta = read_json(path, "cameras file")
-    if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
-        raise InputError(f"{path}: no frames")
-    focal = ("fl_x", "fl_y", "camera_angle_x")
-    top = _intrinsics(meta, None, None, str(path)) if any(k in meta for k in focal) else None
+    raw = frame_list(meta, where)
+    top = intrinsics(meta, None, None, where) if any(k in meta for k in FOCAL_KEYS) else None
     frames = []
-    for i, f in enumerate(meta["frames"]):
-        where = f"{path} frame {i}"
-        if not isinstance(f, dict) or "file_path" not in f or "transform_matrix" not in f:
-            raise InputError(f"{where}: needs file_path and transform_matrix")
-        if top is None and not any(k in f for k in focal):
-            raise InputError(f"{where}: missing intrinsics (fl_x, fl_y, cx, cy, w, h at the top level or per frame)")
-        intr = _intrinsics(f, top, None, where) if top is None or any(k in f for k in focal) else top
-        frames.append(Frame(Path(str(f["file_path"])).stem, Path(str(f["file_path"])), _camera_to_world(f, where), intr,
-                            time=float(f["time"]) if isinstance(f.get("time"), (int, float)) else None))
+    for i, f in enumerate(raw):
+        at = f"frames[{i}]"
+        file_path = text(entry(f, "file_path", where, parent=at), f"{at}.file_path", where)
+        c2w = camera_to_world(entry(f, "transform_matrix", where, parent=at), f"{at}.transform_matrix", where)
+        if top is None and not any(k in f for k in FOCAL_KEYS):
+            raise InputError(f"{where}: {at} has no intrinsics (fl_x, fl_y, cx, cy, w, h at the top level or per frame)")
+        intr = intrinsics(f, top, None, where, f"{at}.") if top is None or any(k in f for k in INTRINSIC_KEYS) else top
+        frames.append(Frame(Path(file_path).stem, Path(file_path), c2w, intr, time=optional_time(f, where, at)))
     return frames
 
 
@@ -213,51 +201,20 @@ def load_poses(path: Path) -> tuple[np.ndarray, dict]:
     OpenCV camera-to-world (N, 4, 4) of its frames, and its top-level keys (``up``, ``object`` ...)."""
     src = find_dataset_file(Path(path))
     meta = read_json(src, "dataset")
-    if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
-        raise InputError(f"{src}: no frames")
-    c2w = np.stack([_camera_to_world(f if isinstance(f, dict) else {}, f"{src} frame {i}")
-                    for i, f in enumerate(meta["frames"])])
+    raw = frame_list(meta, str(src))
+    c2w = np.stack([camera_to_world(entry(f, "transform_matrix", str(src), parent=f"frames[{i}]"),
+                                    f"frames[{i}].transform_matrix", str(src)) for i, f in enumerate(raw)])
     return c2w, {k: v for k, v in meta.items() if k != "frames"}
 
 
-def _camera_to_world(f: dict, where: str) -> np.ndarray:
-    """A frame's OpenCV camera-to-world (4, 4) from its OpenGL ``transform_matrix`` (4x4 or 3x4)."""
-    try:
-        m = np.asarray(f["transform_matrix"], dtype=np.float64)
-    except (KeyError, TypeError, ValueError):
-        m = np.zeros(0)
-    if m.shape == (3, 4):
-        m = np.vstack([m, [0, 0, 0, 1]])
-    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
-        raise InputError(f"{where}: transform_matrix must be 4x4 finite numbers")
-    return opencv_from_opengl(m)
-
-
-def _viewpoint(vp, where: str) -> Viewpoint | None:
-    """A frame's ``viewpoint`` entry (crops.json), or None where it has none."""
-    if vp is None:
-        return None
-    try:
-        return Viewpoint(float(vp["azimuth_deg"]), float(vp["elevation_deg"]), float(vp["distance_m"]))
-    except (TypeError, KeyError, ValueError):
-        raise InputError(f"{where}: viewpoint needs azimuth_deg, elevation_deg, distance_m") from None
-
-
-def _read_volume(meta: dict, root: Path) -> ObjectVolume | None:
+def _read_volume(meta: dict, root: Path, where: str) -> ObjectVolume | None:
     """Object sphere from the dataset json (``object``) or an ``object.json`` beside it."""
-    obj = meta.get("object")
-    if obj is None and (root / "object.json").is_file():
-        obj = read_json(root / "object.json", "object file")
-    if obj is None:
-        return None
-    try:
-        c = tuple(float(v) for v in obj["center"])
-        r = float(obj["radius"])
-    except (KeyError, TypeError, ValueError):
-        raise InputError(f"object volume in {root} needs center [x, y, z] and radius") from None
-    if len(c) != 3 or not r > 0:
-        raise InputError(f"object volume in {root}: center needs 3 values and radius > 0")
-    return ObjectVolume(c, r)  # type: ignore[arg-type]
+    obj = entry(meta, "object", where, None)
+    if obj is not None:
+        return object_volume(obj, where)
+    if (root / "object.json").is_file():
+        return object_volume(read_json(root / "object.json", "object file"), str(root / "object.json"), "")
+    return None
 
 
 def intrinsics_fields(intr: Intrinsics) -> dict:

@@ -12,10 +12,11 @@ from torch.nn import functional as F
 
 from ..core.errors import DbbError
 from ..core.images import resize_rgba
-from ..core.outputs import read_json
+from ..core.fields import entry, number, shown, text, type_name
 from ..core.progress import progress
 from ..crops.sequences import sequence_windows
 from ..datasets.images import load_rgba
+from ..datasets.entries import up_vector
 from ..datasets.transforms import find_dataset_file, load_dataset, missing_crops
 from .rgba import premultiply
 
@@ -48,48 +49,57 @@ class SequenceData:
 
 
 def load_sequences(dataset: Path, size: int = 64) -> SequenceData:
-    """Read ``crops.json`` (RGBA crops, per-frame ``viewpoint``, ``split``, ``time``, ``sequences``).
-
-    Windows come from the file's ``sequences``; a file without them gets windows from the frame
-    times (:func:`dbb_capture.crops.sequences.sequence_windows`, 11 frames).
-    """
+    """Read ``crops.json`` (RGBA crops, per-frame ``viewpoint``, ``split``, ``time``; the window
+    length ``sequence_length``, the windows ``sequences`` and the scene's ``up``, as preprocess
+    writes them), every entry checked before a crop is decoded."""
     why = missing_crops(Path(dataset))
     if why is not None:
         raise DbbError(why)
     src = find_dataset_file(Path(dataset))
     if src.name != "crops.json":
         raise DbbError(f"{dataset}: the RSSM trains on a preprocess dataset (crops.json), found {src.name}")
-    meta = read_json(src, "dataset")
     ds = load_dataset(src)
-    raw = meta["frames"]
-    views, times = [], []
-    for i, f in enumerate(raw):
-        vp = f.get("viewpoint")
-        try:
-            views.append([float(vp["azimuth_deg"]), float(vp["elevation_deg"]), float(vp["distance_m"])])
-        except (TypeError, KeyError, ValueError):
-            raise DbbError(f"{src} frame {i}: needs viewpoint {{azimuth_deg, elevation_deg, distance_m}}") from None
-        if f.get("time") is None:
-            raise DbbError(f"{src} frame {i}: needs time (seconds)")
-        times.append(float(f["time"]))
-    splits = np.array([fr.split for fr in ds.frames])
-    length = int(meta.get("sequence_length", 11))
-    if "sequences" in meta:
-        windows = [(int(s["start"]), str(s["split"])) for s in meta["sequences"]]
-    else:
-        windows = sequence_windows(np.array(times), splits, length)
-    if any(s < 0 or s + length > len(raw) for s, _ in windows):
-        raise DbbError(f"{src}: a sequence window runs past the last frame")
+    meta, where, n = ds.extras, str(src), len(ds.frames)
+    for i, fr in enumerate(ds.frames):
+        if fr.viewpoint is None:
+            raise DbbError(f"{where}: frames[{i}].viewpoint is missing ({{azimuth_deg, elevation_deg, distance_m}})")
+        if fr.time is None:
+            raise DbbError(f"{where}: frames[{i}].time is missing (seconds)")
+    up_vector(entry(meta, "up", where), where)
+    length = int(number(entry(meta, "sequence_length", where), "sequence_length", where, low=2, high=n,
+                        integer=True, unit=" frames"))
+    windows = _windows(entry(meta, "sequences", where), length, n, where)
     if not any(sp == "train" for _, sp in windows):
-        raise DbbError(f"{src}: no training sequences of {length} consecutive frames")
-    imgs = np.empty((len(raw), size, size, 4), np.uint8)
+        raise DbbError(f"{where}: no training sequences of {length} consecutive frames")
+    splits = np.array([fr.split for fr in ds.frames])
+    imgs = np.empty((n, size, size, 4), np.uint8)
     with progress(transient=True) as prog:
-        task = prog.add_task("load crops", total=len(raw), info="")
+        task = prog.add_task("load crops", total=n, info="")
         for i, fr in enumerate(ds.frames):
             imgs[i] = np.round(resize_rgba(load_rgba(fr), size) * 255).astype(np.uint8)
             prog.update(task, advance=1)
-    return SequenceData(src, imgs, np.array(views, np.float32), splits, np.array(times), windows, length,
-                        {k: v for k, v in meta.items() if k != "frames"})
+    views = np.array([[fr.viewpoint.azimuth_deg, fr.viewpoint.elevation_deg, fr.viewpoint.distance_m]
+                      for fr in ds.frames], np.float32)
+    return SequenceData(src, imgs, views, splits, np.array([fr.time for fr in ds.frames]), windows, length,
+                        dict(meta))
+
+
+def _windows(value: object, length: int, n: int, where: str) -> list[tuple[int, str]]:
+    """The ``sequences`` entry: windows ``{"start": frame, "split": train | test}`` of ``length``
+    frames that lie within the ``n`` frames."""
+    if not isinstance(value, list):
+        raise DbbError(f"{where}: sequences must be a list of windows {{start, split}}, not {type_name(value)} "
+                       f"({shown(value)})")
+    windows = []
+    for i, w in enumerate(value):
+        at = f"sequences[{i}]"
+        start = int(number(entry(w, "start", where, parent=at), f"{at}.start", where, low=0, high=n - length,
+                           integer=True))
+        split = text(entry(w, "split", where, parent=at), f"{at}.split", where)
+        if split not in ("train", "test"):
+            raise DbbError(f"{where}: {at}.split must be train or test, not {split!r}")
+        windows.append((start, split))
+    return windows
 
 
 def training_windows(data: SequenceData, horizon: int | None) -> tuple[np.ndarray, int]:

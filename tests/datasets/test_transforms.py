@@ -153,3 +153,46 @@ def test_files_put_the_pixel_origin_at_the_corner_and_old_crops_are_refused(tmp_
     (tmp_path / "crops.json").write_text(json.dumps(doc))
     with pytest.raises(DbbError, match="older version"):
         load_dataset(tmp_path)
+
+
+def _one_frame_dataset(tmp_path, **top) -> dict:
+    write_image(tmp_path / "0.png")
+    doc = {**intrinsics_fields(INTR), **top,
+           "frames": [{"file_path": "0.png", "transform_matrix": opengl_from_opencv(poses_around(1)[0]).tolist()}]}
+    return doc
+
+
+@pytest.mark.parametrize("edit, words", [
+    (lambda d: d["frames"][0].update(transform_matrix=np.diag([2.0, 2, 2, 1]).tolist()), "frames[0].transform_matrix must be a camera pose"),
+    (lambda d: d["frames"][0].update(transform_matrix=np.diag([1.0, 1, -1, 1]).tolist()), "with a mirror"),
+    (lambda d: d["frames"][0]["transform_matrix"][3].__setitem__(0, 0.5), "must end with the row [0, 0, 0, 1]"),
+    (lambda d: d["frames"][0]["transform_matrix"][1].__setitem__(2, float("nan")), "transform_matrix[1][2] must be a finite"),
+    (lambda d: d["frames"][0]["transform_matrix"][0].__setitem__(3, 1e9), "more than 1e+06 from the origin"),
+    (lambda d: d.pop("w"), "transforms.json: w is missing"),
+    (lambda d: d.update(fl_x=float("inf")), "fl_x must be a finite number"),
+    (lambda d: d["frames"][0].update(fl_x=-3), "frames[0].fl_x -3 px must be at least"),
+    (lambda d: d["frames"][0].update(time=-1), "frames[0].time -1 s must be at least 0"),
+    (lambda d: d["frames"][0].update(split=7), "frames[0].split must be a string"),
+    (lambda d: d.update(up=[0, 0, 0]), "up [0.0, 0.0, 0.0] must be a direction"),
+    (lambda d: d.update(object={"center": [0, 0, 0], "radius": 0}), "object.radius 0 must be above 0"),
+    (lambda d: d.update(crop_size=32, dbb_dataset_version=3), "dbb_dataset_version 3 is newer"),
+])
+def test_each_bad_entry_is_named_with_what_it_must_be(tmp_path, edit, words):
+    """A damaged or hand-edited entry is refused where the file is read, by name, before training."""
+    doc = _one_frame_dataset(tmp_path)
+    edit(doc)
+    (tmp_path / "transforms.json").write_text(json.dumps(doc))
+    with pytest.raises(DbbError) as e:
+        load_dataset(tmp_path)
+    assert words in str(e.value) and "transforms.json" in str(e.value)
+
+
+def test_blender_files_take_the_image_size_and_rounded_poses_pass(tmp_path):
+    """Without w and h the images give the size (Blender files); poses rounded to 4 digits are
+    still rigid enough."""
+    doc = _one_frame_dataset(tmp_path)
+    del doc["w"], doc["h"]
+    doc["frames"][0]["transform_matrix"] = np.round(doc["frames"][0]["transform_matrix"], 4).tolist()
+    (tmp_path / "transforms.json").write_text(json.dumps(doc))
+    f = load_dataset(tmp_path).frames[0]
+    assert (f.intr.width, f.intr.height) == (40, 30)
