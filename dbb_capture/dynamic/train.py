@@ -146,9 +146,9 @@ def read_checkpoint(path: Path) -> Checkpoint:
 
 
 def load_optimizer(opt: torch.optim.Optimizer, saved: dict, where: str) -> None:
-    """Restore ``opt`` from the checkpoint's ``opt`` entry (``saved``): one parameter group of
-    finite settings, and for each parameter finite moments of its shape (a NaN moment would turn
-    the first step's weights into NaN)."""
+    """Restore ``opt`` from the checkpoint's ``opt`` entry (``saved``): its parameter groups of
+    finite settings, and for each parameter finite moments of its shape, squared ones not negative
+    (a NaN moment would turn the first step's weights into NaN)."""
     groups, state = checkpoint.part(saved, "opt.param_groups", where), checkpoint.part(saved, "opt.state", where)
     if not isinstance(groups, list) or len(groups) != len(opt.param_groups) or not all(isinstance(g, dict) for g in groups):
         raise InputError(f"{where}: opt.param_groups must be a list of {len(opt.param_groups)} dict, "
@@ -167,8 +167,10 @@ def load_optimizer(opt: torch.optim.Optimizer, saved: dict, where: str) -> None:
         for k, v in moments.items():
             shape = () if k == "step" else tuple(params[i].shape)
             t = checkpoint.tensor(v, f"opt.state[{i}].{k}", where, shape)
-            if k.endswith("_sq") and bool((t < 0).any()):    # a mean of squares: its root would be NaN
-                raise InputError(f"{where}: opt.state[{i}].{k} must not be negative (a mean of squared gradients)")
+            # A step count and a mean of squared gradients are never negative; Adam divides by the
+            # latter's square root, so a negative one turns the weights into NaN at the first step.
+            if (k == "step" or k.endswith("exp_avg_sq")) and t.numel() and float(t.min()) < 0:
+                raise InputError(f"{where}: opt.state[{i}].{k} must not be negative, and holds {float(t.min()):g}")
     try:
         opt.load_state_dict(saved)
     except (ValueError, KeyError, TypeError, RuntimeError) as e:
