@@ -35,7 +35,7 @@ import numpy as np
 from ..core.errors import DbbError, InputError
 from ..core.fields import entry, number, numbers, shown, text, type_name
 from ..core.outputs import write_json
-from ..octree.npz import DAMAGED, ZIP_MAGIC, check_zip_headers, reason
+from ..core.zips import DAMAGED, ZIP_MAGIC, check_zip_headers, reason
 
 FORMAT = "deep-billboard"
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import torch
 
-from ..core import checkpoint
+from ..core import checkpoint as saved
 from ..core.errors import InputError
 from ..core.fields import flag, number, numbers, shown
 from ..core.metrics import psnr_from_mse
@@ -65,18 +65,18 @@ class TrainState:
     def load(cls, path: Path, device: torch.device) -> TrainState:
         """The state :meth:`save` wrote, every entry checked (:func:`checked_field`); a checkpoint
         of another version is refused."""
-        st = checkpoint.load(path, "checkpoint")
+        st = saved.load(path, "checkpoint")
         where = str(path)
         version = st.get("version")
         if version != CHECKPOINT_VERSION:
             raise InputError(f"checkpoint {path} is of another version of the static trainer "
                              f"({shown(version) if 'version' in st else 1}, this one reads {CHECKPOINT_VERSION}): "
                              "train the run again")
-        step, seconds = checkpoint.progress(st, where)
-        fld = checked_field(checkpoint.part(st, "field", where), where)
+        step, seconds = saved.progress(st, where)
+        fld = checked_field(saved.part(st, "field", where), where)
         stages = len(stage_resolutions(fld.cfg))
-        stage = number(checkpoint.part(st, "stage", where), "stage", where, low=0, high=stages - 1, integer=True)
-        history = checkpoint.history(checkpoint.part(st, "history", where), "history", where)
+        stage = number(saved.part(st, "stage", where), "stage", where, low=0, high=stages - 1, integer=True)
+        history = saved.history(saved.part(st, "history", where), "history", where)
         return cls(VoxelField.from_state(fld.state, device), step, seconds, int(stage), list(history))
 
 
@@ -93,27 +93,27 @@ def checked_field(st: object, where: str) -> CheckedField:
     positive radius, a lattice of one of its stages' sizes, and N distinct active lattice points
     with tables of N rows (density (N, 1), SH (N, 3 B)) of finite values; else one line naming the
     entry. Checked here so that a damaged field is refused before a resumed run trains on it."""
-    cfg = checkpoint.config(checkpoint.part(st, "field.config", where), FieldConfig, "field.config", where)
-    vol = checkpoint.part(st, "field.volume", where)
-    center = numbers(checkpoint.part(vol, "field.volume.center", where), "field.volume.center", where, (3,))
-    radius = number(checkpoint.part(vol, "field.volume.radius", where), "field.volume.radius", where,
+    cfg = saved.config(saved.part(st, "field.config", where), FieldConfig, "field.config", where)
+    vol = saved.part(st, "field.volume", where)
+    center = numbers(saved.part(vol, "field.volume.center", where), "field.volume.center", where, (3,))
+    radius = number(saved.part(vol, "field.volume.radius", where), "field.volume.radius", where,
                     low=0, low_open=True)
-    estimated = flag(checkpoint.part(vol, "field.volume.estimated", where), "field.volume.estimated", where)
+    estimated = flag(saved.part(vol, "field.volume.estimated", where), "field.volume.estimated", where)
     ress = stage_resolutions(cfg)
-    res = checkpoint.part(st, "field.res", where)
+    res = saved.part(st, "field.res", where)
     if isinstance(res, bool) or res not in ress:
         raise InputError(f"{where}: field.res must be one of its stages' lattice sizes "
                          f"({', '.join(map(str, ress))}), not {shown(res)}")
-    nearest = flag(checkpoint.part(st, "field.nearest", where), "field.nearest", where)
-    active = checkpoint.tensor(checkpoint.part(st, "field.active", where), "field.active", where, (None,), floating=False)
+    nearest = flag(saved.part(st, "field.nearest", where), "field.nearest", where)
+    active = saved.tensor(saved.part(st, "field.active", where), "field.active", where, (None,), floating=False)
     n = active.numel()
     if n and (int(active.min()) < 0 or int(active.max()) >= res ** 3):
         raise InputError(f"{where}: field.active must hold lattice points 0..{res ** 3 - 1} of its {res}^3 lattice, "
                          f"not {int(active.min())}..{int(active.max())}")
     if torch.unique(active).numel() != n:
         raise InputError(f"{where}: field.active must not hold a lattice point twice")
-    density = checkpoint.tensor(checkpoint.part(st, "field.density", where), "field.density", where, (n, 1))
-    sh = checkpoint.tensor(checkpoint.part(st, "field.sh", where), "field.sh", where, (n, 3 * cfg.n_basis))
+    density = saved.tensor(saved.part(st, "field.density", where), "field.density", where, (n, 1))
+    sh = saved.tensor(saved.part(st, "field.sh", where), "field.sh", where, (n, 3 * cfg.n_basis))
     return CheckedField(cfg, {"config": asdict(cfg), "res": int(res), "nearest": nearest, "active": active,
                               "density": density, "sh": sh,
                               "volume": ObjectVolume(tuple(center), radius, estimated).to_json()})

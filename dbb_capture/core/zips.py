@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.errors import DbbError
+from .errors import DbbError
 
 # What numpy and zipfile raise on a damaged file (MemoryError: a header claiming a huge array).
 DAMAGED = (OSError, ValueError, EOFError, KeyError, TypeError, IndexError, struct.error, zipfile.BadZipFile,
