@@ -133,7 +133,7 @@ def calibrate(input_path: Path, board_path: Path | None, output: Path, fps: floa
     from dbb_capture.capture.board import BoardSpec
     from dbb_capture.capture.footage import open_footage
     from dbb_capture.core.errors import DbbError
-    from dbb_capture.core.outputs import write_json
+    from dbb_capture.core.outputs import check_writable, write_json
     from dbb_capture.core.progress import progress
     from dbb_capture.poses.calibrate import calibrate_footage
 
@@ -147,6 +147,7 @@ def calibrate(input_path: Path, board_path: Path | None, output: Path, fps: floa
             raise click.BadParameter("pass --board board.json (INPUT holds no board.json)")
         board_path = input_path / "board.json"
     board = BoardSpec.load(board_path)
+    check_writable(output)
     with progress(transient=True) as prog:
         task = prog.add_task("detect board", total=None, info="")
         cal = calibrate_footage(source, board, fps, max_views, workers=_workers(workers),

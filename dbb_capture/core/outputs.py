@@ -76,6 +76,7 @@ def atomic_dir(final: Path, overwrite: bool = False) -> Iterator[Path]:
     final = Path(final)
     if final.exists() and not overwrite:
         raise DbbError(f"{final} already exists (pass {{=overwrite}} to replace it)")
+    check_writable(final)
     try:
         final.parent.mkdir(parents=True, exist_ok=True)
         for p in sweep_stale(final):
@@ -113,11 +114,38 @@ def _umask() -> int:
     return mask
 
 
+def check_writable(final: Path) -> None:
+    """Refuse, before any work, an output ``final`` whose folder cannot be made or written
+    (read-only disk, no permission, a file where a folder should be): one line instead of a late
+    traceback. Makes nothing: the nearest existing ancestor is the one asked."""
+    final = Path(final).absolute()
+    at = final.parent
+    while not at.exists() and at != at.parent:
+        at = at.parent
+    if not at.is_dir():
+        raise DbbError(f"cannot write {final}: {at} is a file, not a folder")
+    if not os.access(at, os.W_OK | os.X_OK):
+        import errno
+
+        reason = "Read-only file system" if _read_only(at) else os.strerror(errno.EACCES)
+        raise DbbError(f"cannot write {final}: {reason} ({at})")
+
+
+def _read_only(folder: Path) -> bool:
+    try:
+        return bool(os.statvfs(folder).f_flag & os.ST_RDONLY)
+    except OSError:
+        return False
+
+
 def write_bytes_atomic(path: Path, data: bytes) -> None:
     """Write ``data`` to ``path`` through a temporary file and ``os.replace``."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    except OSError as e:
+        raise DbbError(f"cannot write {path}: {e.strerror or e}") from None
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
@@ -170,6 +198,7 @@ def check_run_output(out: Path, overwrite: bool, resume: bool) -> None:
     """A training run may write ``out`` only if it is new, replaced (--overwrite) or resumed."""
     if Path(out).exists() and not (overwrite or resume):
         raise DbbError(f"{out} already exists (pass {{=overwrite}} to replace it, {{=resume}} to continue it)")
+    check_writable(out)
 
 
 def refuse_spent_budget(out: Path, steps: int | None, minutes: float | None) -> None:

@@ -98,6 +98,21 @@ def test_contradictions_and_missing_inputs_are_named_first(tmp_path, args, words
     assert not any(tmp_path.iterdir()), "nothing may be left behind"
 
 
+@pytest.mark.parametrize("args", [
+    ("dbb-capture", "synth", "OUT", "--kind", "static"),
+    ("dbb-capture", "calibrate", "sample_data/static/video.mp4", "--board", "sample_data/static/board.json", "-o", "OUT"),
+    ("dbb-capture", "preprocess", "sample_data/static", "-o", "OUT"),
+    ("dbb-train", "plenoctree", "sample_data/static", "-o", "OUT"),
+    ("dbb-train", "rssm", "sample_data/dynamic", "-o", "OUT"),
+])
+def test_an_output_that_cannot_be_written_is_refused_before_any_work(tmp_path, args):
+    """Every writer asks its output's folder first (a file stands where a folder should be)."""
+    (tmp_path / "file").write_text("x")
+    out = str(tmp_path / "file" / "out")
+    _one_clear_line(_run(*(out if a == "OUT" else a for a in args)), "cannot write", "is a file, not a folder")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+
+
 def test_existing_output_is_kept(tmp_path):
     out = tmp_path / "cap"
     out.mkdir()

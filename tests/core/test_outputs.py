@@ -76,3 +76,18 @@ def test_spawned_workers_die_with_their_parent(tmp_path):
             break
         time.sleep(0.2)
     assert not alive
+
+
+def test_a_file_where_a_folder_should_be_is_refused_before_any_work(tmp_path):
+    (tmp_path / "f").write_text("x")
+    target = tmp_path / "f" / "sub" / "out"
+    with pytest.raises(DbbError, match=r"cannot write .*f is a file, not a folder"):
+        outputs.check_writable(target)
+    with pytest.raises(DbbError, match="not a folder"), atomic_dir(target):
+        pass
+    with pytest.raises(DbbError, match="cannot write"):
+        outputs.write_json(target, {})
+    with pytest.raises(DbbError, match="not a folder"):
+        outputs.check_run_output(target, overwrite=False, resume=False)
+    outputs.check_writable(tmp_path / "new" / "deeper" / "out")     # missing folders are made later
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f"]      # and nothing was made here
