@@ -96,7 +96,7 @@ def build_static(r, tmp: Path, dataset: Path | None, prog) -> Manifest:
 
     run, rec = r.path, r.record
     _need(run, rec.tree.file, r.density_grid_path.name)
-    PlenOctree.load(r.tree_path)        # a damaged tree is refused here, not copied into the bundle
+    tree = PlenOctree.load(r.tree_path)     # a damaged tree is refused here, not copied into the bundle
     center, radius = np.asarray(rec.volume.center, float), float(rec.volume.radius)
     up, cams, board_frame = _dataset_cameras(_run_dataset(rec.dataset, run, dataset))
     T = bundle_from_board(center, up)
@@ -107,7 +107,7 @@ def build_static(r, tmp: Path, dataset: Path | None, prog) -> Manifest:
     proxy = static_proxy(r.density_grid_path, T, support=support)
     write_glb(tmp / "proxy.glb", proxy)
     prog.advance(task)
-    previews = write_static_previews(tmp / "previews", tmp / "model" / "plenoctree.npz", T, radius,
+    previews = write_static_previews(tmp / "previews", tree, T, radius,
                                      round(mean_azimuth(cams, center, np.asarray(up)), 1), prog)
     return Manifest(
         kind="static",

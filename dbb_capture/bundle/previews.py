@@ -99,10 +99,11 @@ def _views(plan: list[list[float]], T: np.ndarray, radius: float) -> list[View]:
     return [orbit_view(f"{i:03d}", T, radius, a, e, d) for i, (a, e, d) in enumerate(plan)]
 
 
-def write_static_previews(folder: Path, tree_path: Path, T: np.ndarray, radius: float, az0: float,
+def write_static_previews(folder: Path, tree, T: np.ndarray, radius: float, az0: float,
                           prog) -> dict:
+    """``tree``: the bundle's PlenOctree (a path or the tree read from it)."""
     plan = preview_plan(3.0 * radius, az0)
-    r = StaticRenderer(tree_path)
+    r = StaticRenderer(tree)
     task = prog.add_task("previews", total=len(plan["turntable"]) + len(plan["sheet"]), info="static")
     tick = lambda: prog.advance(task)
     turntable = r.render(_views(plan["turntable"], T, radius), tick)

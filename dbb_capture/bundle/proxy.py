@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import io
 import math
+import struct
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -368,7 +369,6 @@ def with_buffer_targets(glb: bytes) -> bytes:
     meshes read indices from, ARRAY_BUFFER for vertex attributes (what trimesh leaves out, and
     what the Khronos validator hints at: engines use it to choose GPU buffers)."""
     import json
-    import struct
 
     magic, version, _ = struct.unpack_from("<4sII", glb, 0)
     n, kind = struct.unpack_from("<I4s", glb, 12)
@@ -396,8 +396,6 @@ def check_glb_layout(data: bytes, path: Path) -> None:
     """Refuse a ``.glb`` whose 12-byte header or chunk lengths disagree with its bytes (the
     glTF 2.0 binary layout: magic, version 2, total length, then a JSON chunk and an optional
     BIN chunk): trimesh reads past such damage, a viewer may not."""
-    import struct
-
     if len(data) < 20 or data[:4] != _GLB_MAGIC:
         raise DbbError(f"the proxy mesh {path} is not a binary glTF (.glb) file")
     version, length = struct.unpack_from("<II", data, 4)

@@ -55,11 +55,13 @@ def read_cameras(path: Path, T: np.ndarray | None = None) -> list[View]:
 class StaticRenderer:
     """Straight RGBA renders of a static bundle's PlenOctree."""
 
-    def __init__(self, tree_path: Path):
+    def __init__(self, tree):
+        """``tree``: the bundle's ``plenoctree.npz`` path, or a :class:`~..octree.tree.PlenOctree`
+        already read from it."""
         from ..octree.render import TreeRenderer
         from ..octree.tree import PlenOctree
 
-        self.renderer = TreeRenderer(PlenOctree.load(tree_path), pick_device())
+        self.renderer = TreeRenderer(tree if isinstance(tree, PlenOctree) else PlenOctree.load(tree), pick_device())
 
     def render(self, views: list[View], tick=None) -> list[np.ndarray]:
         out = []

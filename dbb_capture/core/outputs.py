@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import shutil
@@ -125,8 +126,6 @@ def check_writable(final: Path) -> None:
     if not at.is_dir():
         raise DbbError(f"cannot write {final}: {at} is a file, not a folder")
     if not os.access(at, os.W_OK | os.X_OK):
-        import errno
-
         reason = "Read-only file system" if _read_only(at) else os.strerror(errno.EACCES)
         raise DbbError(f"cannot write {final}: {reason} ({at})")
 

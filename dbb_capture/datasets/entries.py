@@ -132,9 +132,10 @@ def optional_path(f: dict, key: str, where: str, at: str) -> str | None:
     return text(p, f"{at}.{key}", where) or None if p is not None else None
 
 
-def frame_split(f: dict, where: str, at: str) -> str:
-    """A frame's ``split``: train (also where absent) or test."""
-    split = text(entry(f, "split", where, "train", parent=at), f"{at}.split", where)
+def frame_split(f: dict, where: str, at: str, default: object = "train") -> str:
+    """The ``split`` of entry ``f`` (named ``at``: a frame, a window): train or test (``default``
+    where absent)."""
+    split = text(entry(f, "split", where, default, parent=at), f"{at}.split", where)
     if split not in ("train", "test"):
         raise InputError(f"{where}: {at}.split must be train or test, not {split!r}")
     return split

@@ -12,11 +12,11 @@ from torch.nn import functional as F
 
 from ..core.errors import DbbError
 from ..core.images import resize_rgba
-from ..core.fields import entry, number, shown, text, type_name
+from ..core.fields import MISSING, entry, number, shown, type_name
 from ..core.progress import progress
 from ..crops.sequences import sequence_windows
 from ..datasets.images import load_rgba
-from ..datasets.entries import up_vector
+from ..datasets.entries import frame_split, up_vector
 from ..datasets.transforms import find_dataset_file, load_dataset, missing_crops
 from .rgba import premultiply
 
@@ -95,10 +95,7 @@ def _windows(value: object, length: int, n: int, where: str) -> list[tuple[int, 
         at = f"sequences[{i}]"
         start = int(number(entry(w, "start", where, parent=at), f"{at}.start", where, low=0, high=n - length,
                            integer=True))
-        split = text(entry(w, "split", where, parent=at), f"{at}.split", where)
-        if split not in ("train", "test"):
-            raise DbbError(f"{where}: {at}.split must be train or test, not {split!r}")
-        windows.append((start, split))
+        windows.append((start, frame_split(w, where, at, default=MISSING)))
     return windows
 
 

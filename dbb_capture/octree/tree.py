@@ -25,8 +25,8 @@ import numpy as np
 
 from ..core.errors import DbbError
 from ..core.outputs import write_bytes_atomic
-from ..geometry.sh import COLOUR_ACTIVATION
 from ..core.zips import read_npz
+from ..geometry.sh import COLOUR_ACTIVATION
 
 SH_FORMATS = {1: "SH1", 4: "SH4", 9: "SH9", 16: "SH16"}   # data_format by SH coefficients per channel
 COLOUR_ACTIVATIONS = ("sigmoid", "relu_shift")            # what the renderers apply to the SH sum
