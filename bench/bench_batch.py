@@ -31,7 +31,6 @@ BIN = Path(sys.executable).parent
 CAPTURES = {  # name: (kind, seconds, fps, clean-plate seconds, seed)
     "static_a": ("static", 4.0, 8, 3.0, 31), "static_b": ("static", 4.0, 8, 3.0, 32),
     "dynamic_a": ("dynamic", 8.0, 8, 3.0, 35), "dynamic_b": ("dynamic", 8.0, 8, 3.0, 36)}
-STATIC_CROP = "128"          # as dbb-batch's static settings (dbb_capture.batch.config)
 
 
 def _run(*cmd: str) -> float:
@@ -55,9 +54,8 @@ def sequential(caps: Path, out: Path, minutes: float, bg: float) -> dict:
     rows = {}
     for name, (kind, *_rest) in CAPTURES.items():
         d, run, b = out / name / "dataset", out / name / "run", out / name / "bundle"
-        crop = ["--crop-size", STATIC_CROP] if kind == "static" else []
         t = {"preprocess": _run("dbb-capture", "preprocess", str(caps / name), "-o", str(d), "--background-minutes",
-                                str(bg), "--overwrite", *crop),
+                                str(bg), "--overwrite"),      # crop sizes as dbb-batch's: the defaults
              "train": _run("dbb-train", "plenoctree" if kind == "static" else "rssm", str(d), "-o", str(run),
                            "--minutes", str(minutes), "--overwrite"),
              "bundle": _run("dbb-export", "bundle", str(run), "-o", str(b), "--overwrite"),

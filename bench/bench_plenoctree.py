@@ -15,6 +15,8 @@ benchmark at a time so timings do not overlap), or trains one itself:
     python bench/bench_plenoctree.py crops DATASET --capture CAPTURE   # the crops themselves against the truth
     python bench/bench_plenoctree.py carve DATASET --capture CAPTURE   # what carving removes, against the truth
     python bench/bench_plenoctree.py speed RUN           # render speed and size of the tree only
+    python bench/bench_plenoctree.py novel RUN --capture CAPTURE   # novel views at 128 and 256 px
+        # along the path, between the frames, against the synthetic truth
 """
 
 from __future__ import annotations
@@ -66,7 +68,7 @@ def render_speed(renderer: TreeRenderer, c2w: np.ndarray, base: Intrinsics, size
 def bench_lego(run_dir: Path, repeats: int) -> dict:
     run = load_run(run_dir)
     ds = load_dataset(Path(run.record.dataset))
-    _, test = split_frames(ds, RunConfig(holdout_every=8))
+    test = split_frames(ds, RunConfig(holdout_every=8)).test
     tree = run.tree()
     r = TreeRenderer(tree)
     rows = evaluate_views(r, test, run.record.training.downscale)
@@ -87,7 +89,7 @@ def bench_speed(run_dir: Path, repeats: int) -> dict:
     """Render speed and size of a run's tree alone (first held-out camera of its dataset)."""
     run = load_run(run_dir)
     ds = load_dataset(Path(run.record.dataset))
-    _, test = split_frames(ds, RunConfig(holdout_every=8))
+    test = split_frames(ds, RunConfig(holdout_every=8)).test
     r = TreeRenderer(run.tree())
     f = test[0]
     return {"run": str(run_dir), "tree_mb": run.tree_path.stat().st_size / 1e6,
@@ -100,7 +102,7 @@ def bench_fox(run_dir: Path) -> dict:
     """Held-out PSNR of the scene field (fox is a scene: the tree holds only the inner sphere)."""
     run = load_run(run_dir)
     ds = load_dataset(Path(run.record.dataset))
-    _, test = split_frames(ds, RunConfig(holdout_names=FOX_HELDOUT))
+    test = split_frames(ds, RunConfig(holdout_names=FOX_HELDOUT)).test
     st = TrainState.load(run.checkpoint_path, torch.device("cpu"))
     ps = []
     for f in test:
@@ -158,6 +160,55 @@ def bench_synth(out: Path, minutes: float) -> dict:
             "steps": run.record.training.steps, "heldout_views": len(test),
             "psnr_black": mean_of(rows, "psnr_black"), "psnr_white": mean_of(rows, "psnr_white"),
             "ssim_white": mean_of(rows, "ssim_white"), "tree_mb": run.tree_path.stat().st_size / 1e6}
+
+
+def novel_cameras(frames: list[Frame], center: np.ndarray, radius: float, up: np.ndarray, size: int,
+                  count: int = 16, fill: float = 0.9) -> list[tuple[np.ndarray, Intrinsics]]:
+    """``count`` cameras at poses no frame was taken from, spread along the capture's path: each
+    between two consecutive frames (the mean of their directions from the object centre and of
+    their distances), looking at the centre with the sphere (``center`` (3,), ``radius``) filling
+    ``fill`` of ``size`` pixels, like a crop camera. OpenCV camera-to-world (4, 4) and intrinsics."""
+    from dbb_capture.crops.camera import facing_camera
+
+    order = sorted(frames, key=lambda f: (f.time if f.time is not None else 0.0, f.name))
+    eyes = np.stack([f.c2w[:3, 3] for f in order])
+    cams = []
+    for i in np.linspace(0, len(order) - 2, count).round().astype(int):
+        a, b = eyes[i] - center, eyes[i + 1] - center
+        d = a / np.linalg.norm(a) + b / np.linalg.norm(b)
+        eye = center + d / np.linalg.norm(d) * 0.5 * (np.linalg.norm(a) + np.linalg.norm(b))
+        cams.append(facing_camera(eye, center, radius, up, size, fill))
+    return cams
+
+
+def bench_novel(run_dir: Path, capture: Path, sizes: tuple[int, ...] = (128, 256), count: int = 16) -> dict:
+    """A run of a synthetic static capture scored on novel views (:func:`novel_cameras`) at each
+    of ``sizes`` px against the object alone rendered from the ground truth, on black and white."""
+    from dbb_capture.synth.capture import load_ground_truth
+    from dbb_capture.synth.render import render_object_rgba
+
+    run = load_run(run_dir)
+    ds = load_dataset(Path(run.record.dataset))
+    doc = json.loads(ds.source.read_text())
+    up = np.asarray(doc.get("up", [0.0, 0.0, -1.0]), np.float64)
+    center, radius = np.asarray(run.volume.center, np.float64), float(run.volume.radius)
+    _, _, model = load_ground_truth(capture)
+    r = TreeRenderer(run.tree())
+    out = {"run": str(run_dir), "crop_size": doc.get("crop_size"), "tree_depth": run.record.tree.depth_limit,
+           "final_lattice": run.record.final_res, "tree_mb": run.tree_path.stat().st_size / 1e6,
+           "steps": run.record.training.steps, "views": count,
+           "report": {k: v.get("mean_psnr_tree_white") for k, v in run.record.metrics.get("sets", {}).items()}}
+    for size in sizes:
+        rows, parts = [], []
+        for c2w, intr in novel_cameras(ds.frames, center, radius, up, size, count, doc.get("crop_fill", 0.9)):
+            gt = render_object_rgba(model, intr, c2w, 0.0).astype(np.float32) / 255
+            img = r.render(c2w, intr)
+            rows.append(psnr_on_backgrounds(img, gt))
+            parts.append(error_parts(img, gt))
+        out[f"px{size}"] = {"psnr_black": mean_of(rows, "black"), "psnr_white": mean_of(rows, "white"),
+                            "min_black": min(x["black"] for x in rows), "min_white": min(x["white"] for x in rows),
+                            "per_view_white": [round(x["white"], 2) for x in rows], "error": summarize_parts(parts)}
+    return out
 
 
 def truth_crops(dataset: Path, capture: Path, out: Path) -> Path:
@@ -427,7 +478,7 @@ def bench_capture(dataset: Path, capture: Path, run_dir: Path, minutes: float | 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("part", choices=["lego", "fox", "synth", "speed", "capture", "ceiling", "carve", "crops"])
+    ap.add_argument("part", choices=["lego", "fox", "synth", "speed", "capture", "ceiling", "carve", "crops", "novel"])
     ap.add_argument("path", type=Path,
                     help="run folder (lego, fox), output folder (synth), dataset (capture, carve, crops) or capture (ceiling)")
     ap.add_argument("--minutes", type=float, default=None, help="training budget (default 10 without --steps)")
@@ -469,6 +520,10 @@ def main(argv: list[str] | None = None) -> int:
         if a.capture is None:
             ap.error("crops needs --capture")
         res = score_crops(a.path, a.capture)
+    elif a.part == "novel":
+        if a.capture is None:
+            ap.error("novel needs --capture")
+        res = bench_novel(a.path, a.capture)
     elif a.part == "carve":
         if a.capture is None:
             ap.error("carve needs --capture")

@@ -310,6 +310,9 @@ def budget(work: Path, captures: list[Path], fill: float = 0.9) -> list[dict]:
     return rows
 
 
+QUALITY_CROP = 64     # the matte's figures (docs/results.md) are at 64 px, whatever the footage
+
+
 def run_preprocess(capture: Path, out: Path, *args: str) -> float:
     t = time.monotonic()
     cmd = [str(REPO / ".venv" / "bin" / "dbb-capture"), "preprocess", str(capture), "-o", str(out), "--overwrite",
@@ -329,6 +332,7 @@ def quality(work: Path, captures: list[Path], minutes: float, rescore: bool = Fa
             name = f"{cap.name}-{'plate' if plate else 'noplate'}"
             out = work / name
             budget = ["--background-steps", str(steps)] if steps else ["--background-minutes", str(minutes)]
+            budget += ["--crop-size", str(QUALITY_CROP)]
             secs = 0.0 if rescore or again else run_preprocess(cap, out, *budget,
                                                                *([] if plate else ["--no-clean-plate"]))
             bg = json.loads((out / "dataset.json").read_text())["background"]

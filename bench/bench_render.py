@@ -78,9 +78,10 @@ def speeds(r: TreeRenderer, c2w: np.ndarray, base: Intrinsics, repeats: int) -> 
 
 
 def split(run) -> tuple[list, list]:
-    """Training and held-out views of a run: the dataset's own split if it has one (synthetic
-    crops), else every 8th held out (as the lego runs were trained)."""
-    return split_frames(load_dataset(Path(run.record.dataset)), RunConfig(holdout_every=8))
+    """Training and held-out views of a run, as ``dbb-train plenoctree`` split them (every 8th
+    held out)."""
+    sp = split_frames(load_dataset(Path(run.record.dataset)), RunConfig(holdout_every=8))
+    return sp.train, sp.test
 
 
 def heldout(run) -> list:

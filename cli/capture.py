@@ -162,11 +162,11 @@ def calibrate(input_path: Path, board_path: Path | None, output: Path, fps: floa
 
 # Options read only from a stage on: with --stop-after before it they would do nothing.
 _READ_FROM = {"background": ("background", "background_minutes", "background_steps", "clean_plate", "video_room",
-                             "crop_size", "crop_fill"),
+                             "crop_size", "max_crop_size", "crop_fill"),
               "crops": ("test_fraction", "sequence_length")}
 # What a fixed camera (--crop-window) has none of: board, poses, a room field.
 _NOT_FIXED = ("board_path", "camera_path", "object_path", "refine", "blur_ratio", "background_minutes",
-              "background_steps", "clean_plate", "video_room", "stop_after")
+              "background_steps", "clean_plate", "video_room", "stop_after", "max_crop_size")
 
 
 def _refuse_contradictions(fixed: bool, stop_after: str | None) -> None:
@@ -213,8 +213,11 @@ def _refuse_contradictions(fixed: bool, stop_after: str | None) -> None:
               help="Drop frames less sharp than this share of their neighbours' (0: keep all).")
 @click.option("--refine/--no-refine", default=False, show_default=True,
               help="Refine intrinsics and poses jointly (bundle adjustment).")
-@click.option("--crop-size", type=int, default=64, show_default=True,
-              help="Crop side in pixels (128-256 for static objects).")
+@click.option("--crop-size", type=int, default=None,
+              help="Crop side in pixels (default: as fine as the footage for a static object, 64 for a "
+                   "dynamic one).")
+@click.option("--max-crop-size", type=click.IntRange(32, 1024), default=512, show_default=True,
+              help="Largest crop side chosen from the footage.")
 @click.option("--crop-fill", type=float, default=0.9, show_default=True,
               help="Share of the crop side the object's sphere spans.")
 @click.option("--test-fraction", type=float, default=0.2, show_default=True,
@@ -240,7 +243,8 @@ def _refuse_contradictions(fixed: bool, stop_after: str | None) -> None:
 @overwrite_option
 def preprocess(capture: Path, output: Path, board_path: Path | None, camera_path: Path | None,
                footage: Path | None, object_path: Path | None, background: Path | None,
-               fps: float | None, blur_ratio: float, refine: bool, crop_size: int, crop_fill: float,
+               fps: float | None, blur_ratio: float, refine: bool, crop_size: int | None, max_crop_size: int,
+               crop_fill: float,
                test_fraction: float, sequence_length: int, background_minutes: float, background_steps: int | None,
                clean_plate: bool, video_room: bool,
                crop_window: str | None, fixed_matte: bool, stop_after: str | None, workers: int | None, overwrite: bool) -> None:
@@ -268,7 +272,7 @@ def preprocess(capture: Path, output: Path, board_path: Path | None, camera_path
                              need_board=window is None)
     cfg = PreprocessConfig(fps=fps, blur_ratio=blur_ratio, refine=refine, crop_window=window, fixed_matte=fixed_matte,
                            workers=_workers(workers), stop_after=stop_after, crop_size=crop_size,
-                           crop_fill=crop_fill, test_fraction=test_fraction, sequence_length=sequence_length,
+                           max_crop_size=max_crop_size, crop_fill=crop_fill, test_fraction=test_fraction, sequence_length=sequence_length,
                            use_clean_plate=clean_plate,
                            background=replace(BackgroundConfig(), minutes=background_minutes, steps=background_steps,
                                               video_room=video_room))

@@ -81,13 +81,12 @@ def plenoctree(dataset, out, minutes, steps, downscale, resume, overwrite, mode,
                   "carve_share", "observed_loss")
     run = train_run(dataset, out, cfg, fcfg, resume=resume, overwrite=overwrite, resume_asks=tuple(asked))
     rec = run.record
-    mp = rec.metrics.get("mean_psnr_tree_white")
+    sets = rec.metrics.get("sets", {})
     console.print(f"wrote {escape(str(out))}: {rec.tree.file} ({rec.tree.bytes / 1e6:.1f} MB, {rec.tree.data_format}, "
-                  f"depth {rec.tree.depth_limit}), {rec.training.steps} steps in "
-                  f"{rec.training.seconds / 60:.1f} min"
-                  + (f", {rec.metrics['views']} PSNR {mp:.2f} dB on white" if mp is not None else ""))
-    if mp is not None:
-        console.print(_psnr_words(mp, rec.metrics["views"] == "held-out", out), markup=False)
+                  f"depth {rec.tree.depth_limit}, {rec.final_res}^3 lattice), {rec.training.steps} steps in "
+                  f"{rec.training.seconds / 60:.1f} min")
+    for name, st in sets.items():
+        console.print(_psnr_words(st["mean_psnr_tree_white"], name, st, out), markup=False)
 
 
 @main.command("rssm")
@@ -181,11 +180,12 @@ def rssm_eval(run, dataset, temperature, calibrate) -> None:
     _print_rssm(run, RunRecord.read(run), "re-evaluated")
 
 
-def _psnr_words(p: float, heldout: bool, out: Path) -> str:
-    """What a PlenOctree run's PSNR means, in one line."""
+def _psnr_words(p: float, name: str, st: dict, out: Path) -> str:
+    """What a PlenOctree run's PSNR on one set of views (``name``, its metrics ``st``) means, in one line."""
     from dbb_capture.core.metrics import rms_levels
 
-    which = "held-out views (not trained on)" if heldout else "training views (no held-out ones: fit, not new views)"
+    which = (f"{st['views']} {name} held-out views ({st['what']})" if name != "training"
+             else "training views (no held-out ones: fit, not new views)")
     return (f"PSNR {p:.1f} dB on {which}: renders differ from the photos by {rms_levels(p):.1f} of 255 levels "
             f"(RMS, white background included); higher is better, 30 dB and up usually looks close to the "
             f"photo; truth | render in {out / 'report'}/heldout_*.png")

@@ -18,11 +18,11 @@ start=$SECONDS
 made=()
 step() { echo; echo "== [$(( (SECONDS - start) / 60 )) min] $*"; }
 
-step "1. preprocess sample_data/static: poses, background field (clean plate), mattes, 128 px crops"
-dbb-capture preprocess sample_data/static -o "$OUT/static_dataset" --crop-size 128 --background-minutes "$BG" --overwrite
+step "1. preprocess sample_data/static: poses, background field (clean plate), mattes, crops as fine as the footage"
+dbb-capture preprocess sample_data/static -o "$OUT/static_dataset" --background-minutes "$BG" --overwrite
 made+=("$OUT/static_dataset        dataset: crops.json, transforms.json (+ masks), contact_sheet.png, dataset.json")
 
-step "2. preprocess sample_data/dynamic: same, 64 px crops and 11-frame sequences"
+step "2. preprocess sample_data/dynamic: same, 64 px crops (a dynamic object) and 11-frame sequences"
 dbb-capture preprocess sample_data/dynamic -o "$OUT/dynamic_dataset" --background-minutes "$BG" --overwrite
 made+=("$OUT/dynamic_dataset       dataset: crops.json with sequences, contact_sheet.png, dataset.json")
 

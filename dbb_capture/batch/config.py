@@ -8,18 +8,15 @@ from dataclasses import dataclass, field
 from ..capture.object_spec import OBJECT_KINDS
 from ..core.errors import DbbError
 from ..dynamic.config import RssmConfig, TrainConfig
-from ..preprocess.inputs import PreprocessConfig
+from ..preprocess.inputs import DYNAMIC_CROP_SIZE, PreprocessConfig
 from ..static.field import FieldConfig
 from ..static.run import RunConfig
-
-STATIC_CROP_SIZE = 128      # px; static objects want 128-256 (docs/commands/preprocess.md)
-
 
 @dataclass(frozen=True)
 class StaticSettings:
     """A static capture: preprocess, then ``dbb-train plenoctree`` (default budget 10 minutes)."""
 
-    preprocess: PreprocessConfig = field(default_factory=lambda: PreprocessConfig(crop_size=STATIC_CROP_SIZE))
+    preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)     # crops as fine as the footage
     run: RunConfig = field(default_factory=lambda: RunConfig(minutes=10.0))
     field: FieldConfig | None = None          # None: the trainer's defaults (as dbb-train plenoctree)
 
@@ -28,7 +25,8 @@ class StaticSettings:
 class DynamicSettings:
     """A dynamic capture: preprocess, then ``dbb-train rssm`` (default budget 15 minutes)."""
 
-    preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
+    # A capture is dynamic here by the batch's choice too (default_kind), not only by its object.json.
+    preprocess: PreprocessConfig = field(default_factory=lambda: PreprocessConfig(crop_size=DYNAMIC_CROP_SIZE))
     model: RssmConfig = field(default_factory=RssmConfig)
     train: TrainConfig = field(default_factory=lambda: TrainConfig(minutes=15.0))
 

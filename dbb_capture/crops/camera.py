@@ -149,5 +149,21 @@ def cut_crop(image: np.ndarray, cam: CropCamera, src: Intrinsics, src_c2w: np.nd
 
 def crop_windows(c2ws, src: Intrinsics, center: np.ndarray, radius: float, up: np.ndarray, size: int,
                  fill: float) -> np.ndarray:
-    """:attr:`CropCamera.window_px` (N,) of the crop camera of every frame taken by ``c2ws`` (N of (4, 4))."""
+    """:attr:`CropCamera.window_px` (N,) of the crop camera of every frame taken by ``c2ws`` (N of (4, 4)).
+    The window does not depend on ``size``."""
     return np.array([crop_camera(c, src, center, radius, up, size, fill).window_px for c in c2ws])
+
+
+CROP_SIZE_STEP = 16     # crop sizes chosen from the footage are multiples of this
+MIN_CROP_SIZE = 32
+
+
+def crop_size_for(windows_px: np.ndarray, max_size: int) -> int:
+    """The crop side (pixels) that keeps the footage's detail: the median crop window
+    (``windows_px`` (N,), source pixels) rounded up to a multiple of :data:`CROP_SIZE_STEP`, so a
+    crop pixel spans at most one source pixel, within [:data:`MIN_CROP_SIZE`, ``max_size``].
+    Finer crops would only interpolate the footage; coarser ones throw its detail away."""
+    if not len(windows_px):
+        return max(MIN_CROP_SIZE, min(max_size, 64))
+    size = CROP_SIZE_STEP * math.ceil(float(np.median(windows_px)) / CROP_SIZE_STEP)
+    return int(max(MIN_CROP_SIZE, min(max_size, size)))

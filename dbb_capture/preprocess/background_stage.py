@@ -47,6 +47,7 @@ class BackgroundOutput:
     model: BackgroundModel
     report: dict
     windows: np.ndarray          # (N,) crop window of each posed frame, source pixels (:func:`matte_geometry`)
+    crop_size: int               # the crops' side, pixels
     scale: int                   # the crops are matted at this many times their size
 
 
@@ -77,12 +78,24 @@ def object_sphere(ctx: StageContext, poses: PosesOutput) -> ObjectSphere:
     return ObjectSphere(center, radius, up, source)
 
 
-def matte_geometry(cfg: PreprocessConfig, poses: PosesOutput, sphere: ObjectSphere) -> tuple[np.ndarray, int]:
-    """The crop windows (N,) of the posed frames in source pixels and the scale the crops are
-    matted at (:func:`~.crops.matte_scale`)."""
+@dataclass(frozen=True)
+class MatteGeometry:
+    """How the crops are cut: each posed frame's window, the crops' side and the matte's scale."""
+
+    windows: np.ndarray          # (N,) crop window of each posed frame, source pixels
+    crop_size: int               # pixels (:meth:`PreprocessConfig.crop_size_for`)
+    why: str                     # where the crop size comes from, in words
+    scale: int                   # matted at this many times the crop size (:func:`~.crops.matte_scale`)
+
+
+def matte_geometry(cfg: PreprocessConfig, poses: PosesOutput, sphere: ObjectSphere,
+                   kind: str | None = None) -> MatteGeometry:
+    """The crop windows of the posed frames, the crop size for them and the object's ``kind``,
+    and the scale the crops are matted at."""
     windows = crop_windows([p.c2w for p in poses.run.posed], poses.run.intrinsics, sphere.center, sphere.radius,
-                           sphere.up, cfg.crop_size, cfg.crop_fill)
-    return windows, matte_scale(windows, cfg.crop_size, cfg.matte.supersample_between)
+                           sphere.up, 64, cfg.crop_fill)
+    size, why = cfg.crop_size_for(windows, kind)
+    return MatteGeometry(windows, size, why, matte_scale(windows, size, cfg.matte.supersample_between))
 
 
 def _subsample(items: list, n: int) -> list:
@@ -110,8 +123,11 @@ def background_stage(ctx: StageContext, poses: PosesOutput) -> BackgroundOutput:
     plate = inp.background if cfg.use_clean_plate else None
     folder = ctx.out / "background"
     folder.mkdir()
-    windows, scale = matte_geometry(cfg, poses, sphere)
-    bg_cfg = replace(cfg.background, train_size=training_size(cfg.background, cfg.crop_size * scale, cfg.crop_fill,
+    geo = matte_geometry(cfg, poses, sphere, inp.kind)
+    windows, scale = geo.windows, geo.scale
+    if geo.why != "given":
+        ctx.notes.append(f"crops of {geo.crop_size} px, {geo.why} (--crop-size sets another)")
+    bg_cfg = replace(cfg.background, train_size=training_size(cfg.background, geo.crop_size * scale, cfg.crop_fill,
                                                               float(np.median(windows)) if len(windows) else 0.0))
     report: dict = {}
     with progress(transient=True) as prog:
@@ -162,4 +178,4 @@ def background_stage(ctx: StageContext, poses: PosesOutput) -> BackgroundOutput:
     also = f" (and the room around the object in {len(video)} video frames)" if video else ""
     ctx.notes.append(f"background: {mode}, {model.frames} frames{also}, {model.log.steps} steps, "
                      f"training PSNR {model.log.psnr:.1f} dB")
-    return BackgroundOutput(poses, sphere, model, report, windows, scale)
+    return BackgroundOutput(poses, sphere, model, report, windows, geo.crop_size, scale)

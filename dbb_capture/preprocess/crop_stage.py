@@ -252,10 +252,10 @@ def crops_stage(ctx: StageContext, bg: BackgroundOutput) -> CropsOutput:
     c2w = {p.index: p.c2w for p in posed}
     workers = max(1, min(cfg.workers, len(indices) // 20))
     parts = split(indices, workers)
-    windows, scale = bg.windows, bg.scale
+    windows, scale, size = bg.windows, bg.scale, bg.crop_size
     if scale > 1:
-        ctx.notes.append(f"crops matted at {scale}x ({scale * cfg.crop_size} px) and averaged down: the crop window "
-                         f"spans {np.median(windows) / cfg.crop_size:.1f} source pixels per crop pixel (median)")
+        ctx.notes.append(f"crops matted at {scale}x ({scale * size} px) and averaged down: the crop window "
+                         f"spans {np.median(windows) / size:.1f} source pixels per crop pixel (median)")
 
     def run(fn, tasks, task):
         if workers > 1:
@@ -268,7 +268,7 @@ def crops_stage(ctx: StageContext, bg: BackgroundOutput) -> CropsOutput:
         if workers == 1:
             _MODELS[out / "background" / "field.pt"] = model
         return run(_crop_segment, [_CropSegment(inp.footage, {i: c2w[i] for i in idx}, poses.run.intrinsics, sphere,
-                                                cfg.crop_size, cfg.crop_fill, cfg.matte, scale, out / "background" / "field.pt",
+                                                size, cfg.crop_fill, cfg.matte, scale, out / "background" / "field.pt",
                                                 scratch, sheet_at) for idx in parts], task)
 
     with progress(transient=True) as prog:
@@ -306,7 +306,7 @@ def crops_stage(ctx: StageContext, bg: BackgroundOutput) -> CropsOutput:
     sheet_rows = [r.sheet_row for r in results if r.sheet_row is not None]
     sheet_names = [p.name for p, r in zip(posed, results) if r.sheet_row is not None]
     windows = sequence_windows(np.array([f.time for f in frames]), splits, cfg.sequence_length)
-    write_crops(out / "crops.json", frames, sphere.center, sphere.radius, sphere.up, cfg.crop_size, cfg.crop_fill,
+    write_crops(out / "crops.json", frames, sphere.center, sphere.radius, sphere.up, size, cfg.crop_fill,
                 cfg.sequence_length, windows,
                 {"ply_file_path": POINT_CLOUD,
                  "note": "crop cameras: OpenGL camera-to-world, ChArUco board frame, metres; straight RGBA crops"})

@@ -66,7 +66,10 @@ def fixed_camera_stage(ctx: StageContext, _previous: Any = None) -> CropsOutput:
                    else "temporal median of the video")
         (out / "background").mkdir()
         write_image(out / "background" / "median_window.png", cv2.cvtColor(plate, cv2.COLOR_RGB2BGR))
-        size = cfg.crop_size
+        # One viewpoint: a video for the RSSM, whatever object.json says.
+        size, why = cfg.crop_size_for(np.array([float(side)]), "dynamic")
+        if why != "given":
+            ctx.notes.append(f"crops of {size} px, {why} (--crop-size sets another)")
         pred = cv2.resize(plate, (size, size), interpolation=cv2.INTER_AREA)
         inside = cv2.resize(_window(np.full((info.height, info.width, 3), 255, np.uint8), x, y, side), (size, size),
                             interpolation=cv2.INTER_AREA)[..., 0]

@@ -7,11 +7,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from ..background.config import BackgroundConfig
 from ..capture.board import BoardSpec
 from ..capture.footage import FootageSource, R3dSource, capture_footage, open_footage
-from ..capture.object_spec import load_object_sphere
+from ..capture.object_spec import load_object_sphere, object_kind
 from ..core.errors import DbbError, InputError
+from ..crops.camera import crop_size_for
 from ..crops.matte import MatteConfig
 from ..geometry.cameras import Intrinsics
 from ..poses.detect import DetectorConfig
@@ -29,8 +32,10 @@ class CaptureInputs:
     camera_source: str
     object_json: Path | None
     background: Path | None
+    kind: str | None = None          # object.json's "kind" ("static", "dynamic"), None if not given
 
 
+DYNAMIC_CROP_SIZE = 64    # the RSSM's default image size (dynamic.config), which dynamic crops keep
 R3D_INTRINSICS = "Record3D metadata"     # CaptureInputs.camera_source of a Record3D export's own intrinsics
 
 
@@ -65,7 +70,8 @@ def resolve_capture(capture: Path, board: Path | None = None, camera: Path | Non
             if (capture / cand).exists():
                 background = capture / cand
                 break
-    return CaptureInputs(capture, src, board_spec, intr, cam_src, obj, background)
+    return CaptureInputs(capture, src, board_spec, intr, cam_src, obj, background,
+                         object_kind(obj) if obj is not None else None)
 
 
 @dataclass(frozen=True)
@@ -79,7 +85,8 @@ class PreprocessConfig:
     stop_after: str | None = None
     detector: DetectorConfig = DetectorConfig()
     gates: PoseConfig = PoseConfig()
-    crop_size: int = 64
+    crop_size: int | None = None          # None: from the footage (:meth:`crop_size_for`)
+    max_crop_size: int = 512              # ... at most this
     crop_fill: float = 0.9
     test_fraction: float = 0.2
     sequence_length: int = 11
@@ -90,8 +97,10 @@ class PreprocessConfig:
     matte: MatteConfig = MatteConfig()
 
     def validate(self) -> None:
-        if not 16 <= self.crop_size <= 1024:
+        if self.crop_size is not None and not 16 <= self.crop_size <= 1024:
             raise DbbError(f"{{=crop_size}} {self.crop_size}: expected 16..1024 pixels")
+        if not 32 <= self.max_crop_size <= 1024:
+            raise DbbError(f"{{=max_crop_size}} {self.max_crop_size}: expected 32..1024 pixels")
         if not 0.2 <= self.crop_fill <= 1.0:
             raise DbbError(f"{{=crop_fill}} {self.crop_fill}: expected 0.2..1")
         if not 0.0 <= self.test_fraction < 1.0:
@@ -99,6 +108,21 @@ class PreprocessConfig:
         if self.sequence_length < 2:
             raise DbbError("{=sequence_length} must be at least 2 (1 context + 1 predicted frame)")
         self.background.validate()
+
+
+    def crop_size_for(self, windows_px: np.ndarray, kind: str | None) -> tuple[int, str]:
+        """The crop side (pixels) of a capture whose crop windows span ``windows_px`` (N,) source
+        pixels, and why: ``crop_size`` if given; for a ``"dynamic"`` object the RSSM's image
+        size (it learns at that size, larger crops would only be shrunk again); else as fine
+        as the footage (:func:`~dbb_capture.crops.camera.crop_size_for`, up to ``max_crop_size``)."""
+        if self.crop_size is not None:
+            return self.crop_size, "given"
+        if kind == "dynamic":
+            return DYNAMIC_CROP_SIZE, "the RSSM's image size, for an object that moves"
+        size = crop_size_for(windows_px, self.max_crop_size)
+        med = float(np.median(windows_px)) if len(windows_px) else 0.0
+        capped = f", capped by the maximum {self.max_crop_size} px" if size == self.max_crop_size and med > size else ""
+        return size, f"from the footage: the object's crop window spans {med:.0f} source pixels (median){capped}"
 
 
 @dataclass

@@ -229,21 +229,54 @@ def load_run(path: Path) -> Run:
     return Run(Path(path), RunRecord.from_json(read_json(Path(path) / "run.json", "run description"), Path(path)))
 
 
-def split_frames(ds: PosedDataset, cfg: RunConfig) -> tuple[list[Frame], list[Frame]]:
-    """Train and held-out frames: the dataset's own split, else the configured hold-out."""
+@dataclass
+class HeldOut:
+    """One set of held-out frames and what it is: ``name`` ("interleaved": every n-th view along
+    the path, new views between trained ones; "test": a dataset's own test views; "named": the
+    frames asked for), ``what`` in words."""
+
+    name: str
+    what: str
+    frames: list[Frame]
+
+
+@dataclass
+class Split:
+    """The frames trained on and the held-out sets scored in the report (the first is the
+    run's headline figure; one set today, a list so a report can name each it scores)."""
+
+    train: list[Frame]
+    heldout: list[HeldOut]
+
+    @property
+    def test(self) -> list[Frame]:
+        return [f for h in self.heldout for f in h.frames]
+
+
+def split_frames(ds: PosedDataset, cfg: RunConfig) -> Split:
+    """Train and held-out frames. Named frames if asked; a dataset's own test views (Blender's
+    ``transforms_test.json``, a split file) if it has them; else every ``holdout_every``-th view
+    held out between trained ones ("interleaved"). A capture's crops count as unsplit: their
+    test split is the last stretch of the path in time, which the RSSM needs held out (it
+    predicts forward in time) but which a static object would only lose views of, and whose
+    score measures extrapolation beyond the path, not new views among the trained ones."""
     frames = ds.frames
     if cfg.holdout_names:
         frames = holdout_named(frames, set(cfg.holdout_names))
         missing = set(cfg.holdout_names) - {f.name for f in frames}
         if missing:
             raise DbbError(f"held-out frames not in the dataset: {', '.join(sorted(missing))}")
-    elif all(f.split == "train" for f in frames):
+        name, what = "named", "the frames asked for"
+    elif ds.kind != "crops" and any(f.split == "test" for f in frames):
+        name, what = "test", "the dataset's test views"
+    else:
         frames = holdout_every(frames, cfg.holdout_every)
+        name, what = "interleaved", f"every {cfg.holdout_every}th view along the path, between trained ones"
     train_f = [f for f in frames if f.split == "train"]
     test_f = [f for f in frames if f.split == "test"]
     if not train_f:
         raise DbbError("no training frames left after the hold-out")
-    return train_f, test_f
+    return Split(train_f, [HeldOut(name, what, test_f)] if test_f else [])
 
 
 def for_tree_depth(fcfg: FieldConfig, depth: int | None) -> FieldConfig:
@@ -275,7 +308,8 @@ def train_run(dataset: Path, out: Path, cfg: RunConfig, field_cfg: FieldConfig |
         # Its transforms.json holds the whole room: trained as a scene it says nothing of the object.
         raise DbbError(f"{why} (or give {Path(dataset) / 'transforms.json'} to train the whole room)")
     ds = load_dataset(Path(dataset))
-    train_f, test_f = split_frames(ds, cfg)
+    split = split_frames(ds, cfg)
+    train_f, test_f = split.train, split.test
     mode = cfg.mode if cfg.mode != "auto" else ("object" if ds.rgba else "scene")
     volume = ds.volume or estimate_volume(ds.frames)
     device = pick_device()
@@ -321,8 +355,8 @@ def train_run(dataset: Path, out: Path, cfg: RunConfig, field_cfg: FieldConfig |
         nbytes = tree.save(tmp / TREE_FILE)
         shutil.copyfile(ckpt, tmp / CHECKPOINT_FILE)
         write_density_grid(state.field, tmp / DENSITY_GRID_FILE)
-        metrics = write_report(state, tree, test_f or train_f[:: max(1, len(train_f) // 4)],
-                               cfg, tmp / REPORT_DIR, heldout=bool(test_f))
+        metrics = write_report(state, tree, split.heldout or [HeldOut(
+            "training", "training views (no held-out ones: fit, not new views)", train_f)], cfg, tmp / REPORT_DIR)
         record = RunRecord(
             dataset=str(Path(dataset).resolve()), dataset_file=ds.source.name, dataset_kind=ds.kind, mode=mode,
             volume=volume,
@@ -369,9 +403,10 @@ def write_density_grid(field: VoxelField, path: Path, max_res: int = 256) -> Non
     write_bytes_atomic(path, b.getvalue())
 
 
-def write_report(state: TrainState, tree: PlenOctree, frames: list[Frame], cfg: RunConfig,
-                 folder: Path, heldout: bool) -> dict:
-    """Loss/PSNR curve and renders beside truth (on white); returns the metrics written."""
+def write_report(state: TrainState, tree: PlenOctree, sets: list[HeldOut], cfg: RunConfig, folder: Path) -> dict:
+    """Loss/PSNR curve and renders beside truth (on white) of up to ``max_report_views`` views of
+    each set, spread over it; returns the metrics written (per set, the first set's means also
+    at the top)."""
     import cv2
     import matplotlib
 
@@ -394,27 +429,34 @@ def write_report(state: TrainState, tree: PlenOctree, frames: list[Frame], cfg: 
         fig.savefig(folder / "curve.png", dpi=100)
         plt.close(fig)
     rend = TreeRenderer(tree, state.field.device)
-    rows = []
-    for f in frames[: cfg.max_report_views]:
-        intr = scaled_intrinsics(f.intr, cfg.downscale)
-        o, d, rgba = frame_tensors(f, cfg.downscale)
-        gt = rgba[..., :3] * rgba[..., 3:] + (1 - rgba[..., 3:])
-        img_tree = rend.render(f.c2w, intr, (1.0, 1.0, 1.0))
-        img_field = render_image(state.field, torch.from_numpy(o), torch.from_numpy(d), (1.0, 1.0, 1.0))
-        rows.append({"frame": f.name,
-                     "psnr_tree_white": psnr_from_mse(float(((img_tree - gt) ** 2).mean())),
-                     "psnr_field_white": psnr_from_mse(float(((img_field - gt) ** 2).mean()))})
-        # A scene's tree holds only the inner sphere: show the whole field beside the truth.
-        scene = state.field.cfg.mode == "scene"
-        p = rows[-1]["psnr_field_white" if scene else "psnr_tree_white"]
-        cv2.imwrite(str(folder / f"heldout_{f.name}.png"), cv2.cvtColor(
-            truth_and_render(gt, img_field if scene else img_tree, f"render ({'field' if scene else 'tree'}), "
-                             f"{p:.1f} dB"), cv2.COLOR_RGB2BGR))
-    metrics = {"views": "held-out" if heldout else "training (no held-out frames)",
-               "per_view": rows}
-    if rows:
-        metrics["mean_psnr_tree_white"] = float(np.mean([r["psnr_tree_white"] for r in rows]))
-        metrics["mean_psnr_field_white"] = float(np.mean([r["psnr_field_white"] for r in rows]))
+    # A scene's tree holds only the inner sphere: show the whole field beside the truth.
+    scene = state.field.cfg.mode == "scene"
+    out_sets = {}
+    for hs in sets:
+        picked = np.unique(np.linspace(0, len(hs.frames) - 1, min(cfg.max_report_views, len(hs.frames)))
+                           .round().astype(int))
+        rows = []
+        for f in (hs.frames[i] for i in picked):
+            intr = scaled_intrinsics(f.intr, cfg.downscale)
+            o, d, rgba = frame_tensors(f, cfg.downscale)
+            gt = rgba[..., :3] * rgba[..., 3:] + (1 - rgba[..., 3:])
+            img_tree = rend.render(f.c2w, intr, (1.0, 1.0, 1.0))
+            img_field = render_image(state.field, torch.from_numpy(o), torch.from_numpy(d), (1.0, 1.0, 1.0))
+            rows.append({"frame": f.name,
+                         "psnr_tree_white": psnr_from_mse(float(((img_tree - gt) ** 2).mean())),
+                         "psnr_field_white": psnr_from_mse(float(((img_field - gt) ** 2).mean()))})
+            p = rows[-1]["psnr_field_white" if scene else "psnr_tree_white"]
+            cv2.imwrite(str(folder / f"heldout_{f.name}.png"), cv2.cvtColor(
+                truth_and_render(gt, img_field if scene else img_tree, f"render ({'field' if scene else 'tree'}), "
+                                 f"{p:.1f} dB"), cv2.COLOR_RGB2BGR))
+        out_sets[hs.name] = {"what": hs.what, "views": len(hs.frames), "scored": len(rows), "per_view": rows,
+                             "mean_psnr_tree_white": mean_of(rows, "psnr_tree_white"),
+                             "mean_psnr_field_white": mean_of(rows, "psnr_field_white")}
+    first = sets[0].name if sets else None
+    metrics = {"views": "training (no held-out frames)" if first == "training" else "held-out",
+               "headline": first, "sets": out_sets}
+    if first is not None:
+        metrics |= {k: out_sets[first][k] for k in ("mean_psnr_tree_white", "mean_psnr_field_white")}
     (folder / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
     return metrics
 

@@ -4,6 +4,7 @@ back, and runs of another version are refused."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -16,7 +17,17 @@ from dbb_capture.core.errors import DbbError
 from dbb_capture.core.images import LABEL_PX
 from dbb_capture.datasets.transforms import missing_crops, write_transforms
 from dbb_capture.static.field import FieldConfig
-from dbb_capture.static.run import REPORT_VIEW_PX, RUN_VERSION, RunRecord, for_tree_depth, load_run
+from dbb_capture.datasets.records import Frame, PosedDataset
+from dbb_capture.geometry.cameras import Intrinsics
+from dbb_capture.static.run import (
+    REPORT_VIEW_PX,
+    RUN_VERSION,
+    RunConfig,
+    RunRecord,
+    for_tree_depth,
+    load_run,
+    split_frames,
+)
 
 
 @pytest.fixture(scope="module")
@@ -47,7 +58,10 @@ def test_cli_writes_a_self_describing_run_and_rejects_bad_input(dataset, tmp_pat
     assert loaded.tree().data_format == rec.tree.data_format == "SH9"
     for name in ("tree.npz", "density_grid.npz", "checkpoint.pt", "report/curve.png", "report/metrics.json"):
         assert (run / name).is_file(), name
-    assert "on held-out views (not trained on): renders differ from the photos by " in res.output, res.output
+    # Its own test views, named for what they are.
+    assert "on 2 test held-out views (the dataset's test views): renders differ from the photos by " in res.output, \
+        res.output
+    assert set(meta["metrics"]["sets"]) == {"test"} and meta["metrics"]["headline"] == "test"
     # Held-out views large enough to judge: truth | render, each at least 256 px, named on a band.
     views = sorted((run / "report").glob("heldout_*.png"))
     img = cv2.imread(str(views[0]))
@@ -125,3 +139,26 @@ def test_a_tree_finer_than_the_lattice_skips_the_nearest_lookup_phase():
     assert for_tree_depth(cfg, 7).nearest_from == 1.0           # 256^3 leaves sample the trilinear field
     assert for_tree_depth(cfg, 6).nearest_from == cfg.nearest_from   # 128^3 leaves: the lattice's own cells
     assert for_tree_depth(cfg, None) == cfg
+
+
+def _frames(n: int, later: int) -> list[Frame]:
+    """``n`` frames along a path in time, the last ``later`` of them the dataset's test split."""
+    intr = Intrinsics(8, 8, 8.0, 8.0, 3.5, 3.5)
+    return [Frame(f"{i:03d}", Path(f"{i:03d}.png"), np.eye(4), intr, "test" if i >= n - later else "train",
+                  time=0.1 * i) for i in range(n)]
+
+
+def test_a_capture_is_scored_between_its_views_all_along_its_path():
+    # A capture's time split (its last stretch, for the RSSM) is trained on: every 8th view is held out.
+    frames = _frames(50, 10)
+    sp = split_frames(PosedDataset(Path("crops.json"), "crops", frames, True), RunConfig(holdout_every=8))
+    assert [h.name for h in sp.heldout] == ["interleaved"]
+    assert [f.name for f in sp.test] == ["000", "008", "016", "024", "032", "040", "048"]
+    assert len(sp.train) == 43 and not {f.name for f in sp.train} & {f.name for f in sp.test}
+    # Without a split the same; a dataset's own test views: those only; named frames if asked.
+    sp = split_frames(PosedDataset(Path("t.json"), "transforms", _frames(16, 0), True), RunConfig(holdout_every=8))
+    assert [h.name for h in sp.heldout] == ["interleaved"] and len(sp.train) == 14
+    sp = split_frames(PosedDataset(Path("t.json"), "blender", _frames(16, 4), True), RunConfig(holdout_every=8))
+    assert [(h.name, len(h.frames)) for h in sp.heldout] == [("test", 4)] and len(sp.train) == 12
+    sp = split_frames(PosedDataset(Path("t.json"), "crops", _frames(16, 4), True), RunConfig(holdout_names=("003",)))
+    assert [(h.name, [f.name for f in h.frames]) for h in sp.heldout] == [("named", ["003"])]
