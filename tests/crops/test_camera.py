@@ -143,8 +143,8 @@ def test_resized_crop_camera_sees_the_same_rays():
 def test_crop_size_follows_the_footage_within_its_bounds():
     from dbb_capture.crops.camera import crop_size_for
 
-    # a crop pixel spans at most one source pixel: the median window rounded up to 16 px
-    assert crop_size_for(np.array([150.0, 181.0, 400.0]), 512) == 192
+    # a crop pixel spans at least one source pixel: the median window rounded down to 16 px
+    assert crop_size_for(np.array([150.0, 191.0, 400.0]), 512) == 176
     assert crop_size_for(np.array([176.0]), 512) == 176
     assert crop_size_for(np.array([900.0]), 512) == 512 and crop_size_for(np.array([5.0]), 512) == 32
 
@@ -154,8 +154,8 @@ def test_the_crop_size_is_given_chosen_or_the_rssm_s():
     from dbb_capture.preprocess.inputs import DYNAMIC_CROP_SIZE, PreprocessConfig
 
     w = np.array([300.0, 310.0])
-    assert PreprocessConfig().crop_size_for(w, None)[0] == 320
-    assert PreprocessConfig().crop_size_for(w, "static")[0] == 320
+    assert PreprocessConfig().crop_size_for(w, None)[0] == 304
+    assert PreprocessConfig().crop_size_for(w, "static")[0] == 304
     assert PreprocessConfig(max_crop_size=256).crop_size_for(w, None) == (
         256, "from the footage: the object's crop window spans 305 source pixels (median), capped by the maximum 256 px")
     assert PreprocessConfig().crop_size_for(w, "dynamic")[0] == DYNAMIC_CROP_SIZE == RssmConfig().size
