@@ -45,14 +45,13 @@ def test_bundles_verified_and_the_bad_capture_fails_alone(first_batch, batch_cap
 
 def test_second_run_skips_the_done_captures(first_batch, batch_captures, local_ray):
     out, _ = first_batch
-    t0 = time.monotonic()
     summary = run_batch(batch_captures, out, tiny_config(), live=False)
     by = {c.name: c for c in summary.captures}
     assert by["static"].status == by["dynamic"].status == "skipped"
     assert [s.stage for s in by["static"].stages] == ["check"] and by["static"].metrics.frames_posed >= 6
     assert by["dynamic"].metrics.rssm_gain_db is not None
+    # only the check ran (the re-run's time is a benchmark: bench/bench_batch.py)
     assert by["broken"].status == "failed" and [c.name for c in summary.failed] == ["broken"]
-    assert time.monotonic() - t0 < 30
 
 
 def test_a_damaged_bundle_is_made_again_from_the_run(first_batch, batch_captures, local_ray, tmp_path):
