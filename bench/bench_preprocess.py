@@ -166,7 +166,7 @@ def rematte(capture: Path, dataset: Path) -> tuple[Path, Path]:
     frames = doc["frames"]
     images = {f.index: f.image for f in open_footage(capture / "video.mp4").read(sorted(fr["source_frame"] for fr in frames))}
     crops, counts = [], None
-    scale = matte_scale(crop_windows([_estimated_c2w(dataset, fr) for fr in frames], intr, center, radius, up, size, fill),
+    scale = matte_scale(crop_windows([_estimated_c2w(dataset, fr) for fr in frames], intr, center, radius, up, fill),
                         size, cfg.supersample_between)
     for fr in frames:
         oc = object_crop(images[fr["source_frame"]], intr, _estimated_c2w(dataset, fr), center, radius, up, size, fill,

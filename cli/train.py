@@ -86,7 +86,7 @@ def plenoctree(dataset, out, minutes, steps, downscale, resume, overwrite, mode,
                   f"depth {rec.tree.depth_limit}, {rec.final_res}^3 lattice), {rec.training.steps} steps in "
                   f"{rec.training.seconds / 60:.1f} min")
     for name, st in sets.items():
-        console.print(_psnr_words(st["mean_psnr_tree_white"], name, st, out), markup=False)
+        console.print(_psnr_words(name, st, out), markup=False)
 
 
 @main.command("rssm")
@@ -180,10 +180,11 @@ def rssm_eval(run, dataset, temperature, calibrate) -> None:
     _print_rssm(run, RunRecord.read(run), "re-evaluated")
 
 
-def _psnr_words(p: float, name: str, st: dict, out: Path) -> str:
+def _psnr_words(name: str, st: dict, out: Path) -> str:
     """What a PlenOctree run's PSNR on one set of views (``name``, its metrics ``st``) means, in one line."""
     from dbb_capture.core.metrics import rms_levels
 
+    p = st["mean_psnr_tree_white"]
     which = (f"{st['views']} {name} held-out views ({st['what']})" if name != "training"
              else "training views (no held-out ones: fit, not new views)")
     return (f"PSNR {p:.1f} dB on {which}: renders differ from the photos by {rms_levels(p):.1f} of 255 levels "

@@ -147,11 +147,11 @@ def cut_crop(image: np.ndarray, cam: CropCamera, src: Intrinsics, src_c2w: np.nd
     return out, touched
 
 
-def crop_windows(c2ws, src: Intrinsics, center: np.ndarray, radius: float, up: np.ndarray, size: int,
+def crop_windows(c2ws, src: Intrinsics, center: np.ndarray, radius: float, up: np.ndarray,
                  fill: float) -> np.ndarray:
-    """:attr:`CropCamera.window_px` (N,) of the crop camera of every frame taken by ``c2ws`` (N of (4, 4)).
-    The window does not depend on ``size``."""
-    return np.array([crop_camera(c, src, center, radius, up, size, fill).window_px for c in c2ws])
+    """:attr:`CropCamera.window_px` (N,) of the crop camera of every frame taken by ``c2ws`` (N of (4, 4)):
+    the window does not depend on the crop's size, so it can choose that size."""
+    return np.array([crop_camera(c, src, center, radius, up, 64, fill).window_px for c in c2ws])   # any size
 
 
 CROP_SIZE_STEP = 16     # crop sizes chosen from the footage are multiples of this

@@ -24,7 +24,7 @@ from ..geometry.cameras import Intrinsics, project_points
 from ..geometry.viewpoint import up_from_cameras
 from ..poses.export import plot_camera_path
 from ..poses.run import estimate_poses
-from .inputs import PreprocessConfig, StageContext
+from .inputs import PreprocessConfig, StageContext, note_crop_size
 from .pose_stage import PosesOutput
 
 
@@ -39,6 +39,16 @@ class ObjectSphere:
 
 
 @dataclass(frozen=True)
+class MatteGeometry:
+    """How the crops are cut: each posed frame's window, the crops' side and the matte's scale."""
+
+    windows: np.ndarray          # (N,) crop window of each posed frame, source pixels
+    crop_size: int               # pixels (:meth:`PreprocessConfig.crop_size_for`)
+    why: str                     # where the crop size comes from, in words
+    scale: int                   # matted at this many times the crop size (:func:`~.crops.matte_scale`)
+
+
+@dataclass(frozen=True)
 class BackgroundOutput:
     """The background stage's record: the trained room and what it was made from."""
 
@@ -46,9 +56,7 @@ class BackgroundOutput:
     sphere: ObjectSphere
     model: BackgroundModel
     report: dict
-    windows: np.ndarray          # (N,) crop window of each posed frame, source pixels (:func:`matte_geometry`)
-    crop_size: int               # the crops' side, pixels
-    scale: int                   # the crops are matted at this many times their size
+    geometry: MatteGeometry      # the crop windows, the crops' size and the matte's scale
 
 
 def object_sphere(ctx: StageContext, poses: PosesOutput) -> ObjectSphere:
@@ -78,22 +86,12 @@ def object_sphere(ctx: StageContext, poses: PosesOutput) -> ObjectSphere:
     return ObjectSphere(center, radius, up, source)
 
 
-@dataclass(frozen=True)
-class MatteGeometry:
-    """How the crops are cut: each posed frame's window, the crops' side and the matte's scale."""
-
-    windows: np.ndarray          # (N,) crop window of each posed frame, source pixels
-    crop_size: int               # pixels (:meth:`PreprocessConfig.crop_size_for`)
-    why: str                     # where the crop size comes from, in words
-    scale: int                   # matted at this many times the crop size (:func:`~.crops.matte_scale`)
-
-
 def matte_geometry(cfg: PreprocessConfig, poses: PosesOutput, sphere: ObjectSphere,
                    kind: str | None = None) -> MatteGeometry:
     """The crop windows of the posed frames, the crop size for them and the object's ``kind``,
     and the scale the crops are matted at."""
     windows = crop_windows([p.c2w for p in poses.run.posed], poses.run.intrinsics, sphere.center, sphere.radius,
-                           sphere.up, 64, cfg.crop_fill)
+                           sphere.up, cfg.crop_fill)
     size, why = cfg.crop_size_for(windows, kind)
     return MatteGeometry(windows, size, why, matte_scale(windows, size, cfg.matte.supersample_between))
 
@@ -124,11 +122,9 @@ def background_stage(ctx: StageContext, poses: PosesOutput) -> BackgroundOutput:
     folder = ctx.out / "background"
     folder.mkdir()
     geo = matte_geometry(cfg, poses, sphere, inp.kind)
-    windows, scale = geo.windows, geo.scale
-    if geo.why != "given":
-        ctx.notes.append(f"crops of {geo.crop_size} px, {geo.why} (--crop-size sets another)")
-    bg_cfg = replace(cfg.background, train_size=training_size(cfg.background, geo.crop_size * scale, cfg.crop_fill,
-                                                              float(np.median(windows)) if len(windows) else 0.0))
+    note_crop_size(ctx, geo.crop_size, geo.why)
+    bg_cfg = replace(cfg.background, train_size=training_size(cfg.background, geo.crop_size * geo.scale, cfg.crop_fill,
+                                                              float(np.median(geo.windows)) if len(geo.windows) else 0.0))
     report: dict = {}
     with progress(transient=True) as prog:
         if plate is not None:
@@ -178,4 +174,4 @@ def background_stage(ctx: StageContext, poses: PosesOutput) -> BackgroundOutput:
     also = f" (and the room around the object in {len(video)} video frames)" if video else ""
     ctx.notes.append(f"background: {mode}, {model.frames} frames{also}, {model.log.steps} steps, "
                      f"training PSNR {model.log.psnr:.1f} dB")
-    return BackgroundOutput(poses, sphere, model, report, windows, geo.crop_size, scale)
+    return BackgroundOutput(poses, sphere, model, report, geo)

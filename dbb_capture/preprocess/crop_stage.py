@@ -252,7 +252,7 @@ def crops_stage(ctx: StageContext, bg: BackgroundOutput) -> CropsOutput:
     c2w = {p.index: p.c2w for p in posed}
     workers = max(1, min(cfg.workers, len(indices) // 20))
     parts = split(indices, workers)
-    windows, scale, size = bg.windows, bg.scale, bg.crop_size
+    windows, scale, size = bg.geometry.windows, bg.geometry.scale, bg.geometry.crop_size
     if scale > 1:
         ctx.notes.append(f"crops matted at {scale}x ({scale * size} px) and averaged down: the crop window "
                          f"spans {np.median(windows) / size:.1f} source pixels per crop pixel (median)")

@@ -19,7 +19,7 @@ from ..datasets.records import Frame
 from ..datasets.transforms import write_crops
 from ..geometry.cameras import Intrinsics
 from .crop_stage import CropsOutput
-from .inputs import StageContext
+from .inputs import StageContext, note_crop_size
 from .report import contact_sheet, sequence_counts, sheet_row
 
 FIXED_HFOV_DEG = 60.0  # nominal field of view given to footage without a board (no metric camera)
@@ -68,8 +68,7 @@ def fixed_camera_stage(ctx: StageContext, _previous: Any = None) -> CropsOutput:
         write_image(out / "background" / "median_window.png", cv2.cvtColor(plate, cv2.COLOR_RGB2BGR))
         # One viewpoint: a video for the RSSM, whatever object.json says.
         size, why = cfg.crop_size_for(np.array([float(side)]), "dynamic")
-        if why != "given":
-            ctx.notes.append(f"crops of {size} px, {why} (--crop-size sets another)")
+        note_crop_size(ctx, size, why)
         pred = cv2.resize(plate, (size, size), interpolation=cv2.INTER_AREA)
         inside = cv2.resize(_window(np.full((info.height, info.width, 3), 255, np.uint8), x, y, side), (size, size),
                             interpolation=cv2.INTER_AREA)[..., 0]

@@ -109,7 +109,6 @@ class PreprocessConfig:
             raise DbbError("{=sequence_length} must be at least 2 (1 context + 1 predicted frame)")
         self.background.validate()
 
-
     def crop_size_for(self, windows_px: np.ndarray, kind: str | None) -> tuple[int, str]:
         """The crop side (pixels) of a capture whose crop windows span ``windows_px`` (N,) source
         pixels, and why: ``crop_size`` if given; for a ``"dynamic"`` object the RSSM's image
@@ -134,6 +133,12 @@ class StageContext:
     out: Path
     notes: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)    # what went wrong but let the run go on
+
+
+def note_crop_size(ctx: StageContext, size: int, why: str) -> None:
+    """Say which crop size the run chose and why (:meth:`PreprocessConfig.crop_size_for`), unless it was given."""
+    if why != "given":
+        ctx.notes.append(f"crops of {size} px, {why} (--crop-size sets another)")
 
 
 @dataclass(frozen=True)

@@ -83,7 +83,7 @@ def dataset_stats(frames: list[Frame], windows: list[tuple[int, str]], cfg: Prep
         "train": sum(f.split == "train" for f in frames), "test": sum(f.split == "test" for f in frames),
         "sequences": sequence_counts(windows, cfg.sequence_length),
         "duration_s": round(max(times) - min(times), 3) if times else 0.0,
-        "crop_size": bg.crop_size, "crop_fill": cfg.crop_fill,
+        "crop_size": bg.geometry.crop_size, "crop_fill": cfg.crop_fill,
         "touching_border": sum(bool(f.touches_border) for f in frames),
         "alpha_coverage_mean": round(float(np.mean(coverage)), 4) if coverage else 0.0,
         "viewpoint_range": {"azimuth_deg": rng(0), "elevation_deg": rng(1), "distance_m": rng(2)},
