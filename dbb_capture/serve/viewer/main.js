@@ -100,7 +100,12 @@ const gltf = new GLTFLoader();
 // boxes (3). The proxy is invisible (no colour) yet writes depth and is drawn into the shadow
 // map: each billboard stands on the floor with the shadow of its real shape, and a ball behind
 // the object's front surface is hidden by the object while one in front of it is drawn over it.
+// Its depth pass matters only while balls or boxes exist, so the proxies sit on a layer of their
+// own that the camera sees only then (a software-rendered browser spends more on that pass than
+// on the billboards); the shadow camera always sees it. Layers 1 and 2 are three.js's XR eyes.
 const proxyMaterial = new THREE.MeshBasicMaterial({ colorWrite: false, depthWrite: true });
+const PROXY_LAYER = 3;
+sun.shadow.camera.layers.enable(PROXY_LAYER);
 const wireMaterial = new THREE.MeshBasicMaterial({
   color: 0x39e6b0, wireframe: true, opacity: 0.22, transparent: false, depthWrite: false,
   blending: THREE.CustomBlending, blendSrc: THREE.SrcAlphaFactor, blendDst: THREE.OneMinusSrcAlphaFactor });
@@ -221,6 +226,7 @@ async function loadProxy(o) {
     const shadow = new THREE.Mesh(geom, proxyMaterial);
     shadow.castShadow = true;
     shadow.renderOrder = 2;
+    shadow.layers.set(PROXY_LAYER);
     const wire = new THREE.Mesh(geom, wireMaterial);
     wire.renderOrder = 1.9;
     wire.visible = options.wireframe && o.visible;
@@ -413,6 +419,10 @@ function animate(time, xrFrame) {
     if (fly.enabled) fly.update(dt); else controls.update(dt);
   }
   physics.step(dt);
+  if (camera.layers.isEnabled(PROXY_LAYER) !== physics.bodies.length > 0) {
+    camera.layers.toggle(PROXY_LAYER);
+    invalidate();
+  }
   if (physics.moving()) invalidate(true);
   const view = currentView();
   for (const o of objects) {
