@@ -20,6 +20,11 @@
              0 / 1 / 2 (0 = the prior mean: motion the deterministic path carries) and per
              open-loop step on the test windows
              .venv/bin/python bench/bench_rssm.py motion rssm_run dyn_ds --capture sample_data/dynamic
+    new-path: 10-step rollouts along viewpoint paths the footage never followed, from the
+             synthetic capture's truth: the footage's viewpoints a --shift of the capture later,
+             at the test windows' times, beside the footage's own path rendered from the truth
+             and the run's test windows; step-1 PSNR against the given first frame
+             .venv/bin/python bench/bench_rssm.py new-path rssm_run dyn_ds --capture sample_data/dynamic
     blurred-copy: what copy-first blurred more at each step (a hedge that never moves) scores
              .venv/bin/python bench/bench_rssm.py blurred-copy dyn_ds --sigma 0.5 --sigma 1
 
@@ -49,7 +54,7 @@ from dbb_capture.dynamic.config import (
 from dbb_capture.dynamic.data import batch as window_batch
 from dbb_capture.dynamic.data import load_sequences
 from dbb_capture.dynamic.evaluate import evaluate as evaluate_stepper
-from dbb_capture.dynamic.evaluate import motion_coherence
+from dbb_capture.dynamic.evaluate import motion_coherence, score_rollouts
 from dbb_capture.dynamic.model import Rssm, decoder_input, sample
 from dbb_capture.dynamic.networks import warp_maps
 from dbb_capture.dynamic.record import RunRecord
@@ -115,6 +120,73 @@ def still_truth(dataset: Path, capture: Path, steps: int = 150, samples: int = 2
     vp = f["viewpoint"]
     return {"first": data.rgba[k], "view": np.array([vp["azimuth_deg"], vp["elevation_deg"], vp["distance_m"]],
                                                       np.float32), "truth": truth, "frame": k}
+
+
+def path_truth(dataset: Path, capture: Path, times: np.ndarray, views: np.ndarray, samples: int = 2) -> np.ndarray:
+    """The synthetic capture's object rendered through the crop camera that preprocess would cut
+    at each of ``views`` (..., 3) at ``times`` (...) s: straight RGBA uint8 (..., S, S, 4)."""
+    from dbb_capture.crops.camera import facing_camera
+    from dbb_capture.geometry.viewpoint import Viewpoint, eye_at
+    from dbb_capture.synth.capture import load_ground_truth
+    from dbb_capture.synth.render import render_object_rgba
+
+    doc = json.loads((Path(dataset) / "crops.json").read_text())
+    center, radius = np.asarray(doc["object"]["center"]), float(doc["object"]["radius"])
+    up, size, fill = np.asarray(doc["up"], float), int(doc["crop_size"]), float(doc["crop_fill"])
+    _, _, obj = load_ground_truth(capture)
+    out = []
+    for t, v in zip(times.reshape(-1), views.reshape(-1, 3)):
+        eye = eye_at(Viewpoint(*map(float, v)), center, up)
+        c2w, intr = facing_camera(eye, center, radius, up, size, fill)
+        out.append(render_object_rgba(obj, intr, c2w, float(t), samples))
+    return np.stack(out).reshape(*times.shape, size, size, 4)
+
+
+def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angles (deg) between the viewing directions of views (..., 3) and (..., 3)."""
+    from dbb_capture.dynamic.evaluate import _unit
+
+    ua, ub = _unit(a.reshape(-1, 3)), _unit(b.reshape(-1, 3))
+    return np.degrees(np.arccos(np.clip(np.sum(ua * ub, -1), -1, 1))).reshape(a.shape[:-1])
+
+
+def new_path(run: Path, dataset: Path, capture: Path, shift: float = 0.5, windows: int = 32, seed: int = 0) -> dict:
+    """Rollouts from the run's stepper (its run-time temperature) on three sets of windows at the
+    test windows' times: ``own_crops`` (the test windows as preprocess cut them), ``own_path_truth``
+    (the same viewpoints rendered from the truth) and ``new_path_truth`` (the viewpoints of the
+    stretch ``shift`` of the capture later, wrapped, rendered from the truth at the same times).
+    Each set: mean PSNR of the model, copy-first and near over the steps, the gains, and the
+    model's step 1 against the given first frame."""
+    from dbb_capture.dynamic.evaluate import nearest_training_frames
+
+    model = load_model(run)
+    temperature = RunRecord.read(run).stepper.temperature
+    stepper = Stepper(model, temperature)
+    data = load_sequences(dataset, model.cfg.size)
+    starts = data.starts("test")
+    if len(starts) > windows:
+        starts = starts[np.linspace(0, len(starts) - 1, windows).round().astype(int)]
+    n, L = len(data.rgba), data.length
+    idx = starts[:, None] + np.arange(L)[None]
+    times, own_views = data.times[idx], data.views[idx]
+    moved = (starts[:, None] + int(round(shift * n))) % (n - L + 1) + np.arange(L)[None]
+    new_views = data.views[moved].copy()
+    new_views[..., 2] = own_views[..., 2]          # the same distance: only the direction is new
+    sets = {"own_crops": (data.rgba[idx], own_views),
+            "own_path_truth": (path_truth(dataset, capture, times, own_views), own_views),
+            "new_path_truth": (path_truth(dataset, capture, times, new_views), new_views)}
+    out = {"run": str(run), "temperature": temperature, "windows": len(starts), "steps": L - 1, "shift": shift,
+           "new_path_turn_deg": round(float(np.median(angle_deg(new_views, own_views))), 2)}
+    for name, (truth, views) in sets.items():
+        ps, _, figs = score_rollouts(stepper, data, truth, views, seed)
+        near = nearest_training_frames(data, views[:, 1:].reshape(-1, 3))
+        m = {k: round(float(np.mean(v)), 3) for k, v in ps.items()}
+        step1 = float(np.mean([psnr(figs["methods"]["model"][w, 0], figs["truth"][w, 0]) for w in range(len(starts))]))
+        out[name] = {"mean_psnr_db": m, "gain_vs_copy_first_db": round(m["model"] - m["copy_first"], 3),
+                     "gain_vs_near_db": round(m["model"] - m["near"], 3),
+                     "step1_vs_first_frame_db": round(step1, 3),
+                     "near_gap_deg": round(float(np.median(angle_deg(data.views[near], views[:, 1:].reshape(-1, 3)))), 2)}
+    return out
 
 
 def with_settings(model: Rssm, settings: list[str]) -> Rssm:
@@ -498,6 +570,12 @@ def main() -> None:
     d.add_argument("dataset", type=Path)
     d.add_argument("--seconds", type=float, required=True)
     d.add_argument("-o", "--output", type=Path, required=True)
+    n = sub.add_parser("new-path", help="rollouts along viewpoint paths the footage never followed (synthetic truth)")
+    n.add_argument("run", type=Path)
+    n.add_argument("dataset", type=Path)
+    n.add_argument("--capture", type=Path, required=True, help="the synthetic capture the dataset came from")
+    n.add_argument("--shift", type=float, default=0.5, help="the new path's viewpoints: those this fraction of the capture later")
+    n.add_argument("--windows", type=int, default=32)
     b = sub.add_parser("blurred-copy", help="the score of copy-first blurred more at each step (a hedge)")
     b.add_argument("dataset", type=Path)
     b.add_argument("--sigma", type=float, action="append", default=[], help="pixels at step 1 (repeatable)")
@@ -522,6 +600,8 @@ def main() -> None:
             still = {"first": data.rgba[k], "view": data.views[k], "truth": data.rgba[k + 1:k + 151], "frame": k}
         out = motion(a.run, a.dataset, still, a.temperature or [0.0, 1.0, 2.0], a.samples,
                      model=with_settings(load_model(a.run), a.set))
+    elif a.cmd == "new-path":
+        out = new_path(a.run, a.dataset, a.capture, a.shift, a.windows)
     elif a.cmd == "blurred-copy":
         out = [blurred_copy(a.dataset, s) for s in (a.sigma or [0.5])]
     elif a.cmd == "speed":

@@ -104,23 +104,34 @@ class EvalReport:
 def _windows_scored(stepper, data: SequenceData, starts: np.ndarray, seed: int) -> tuple[dict, dict, dict]:
     """Per-step PSNR and SSIM (method -> list) of open-loop predictions of the windows at ``starts``,
     and the figures' arrays (the truth (W, L, S, S, 4) and each method's frames, premultiplied)."""
-    L = data.length
-    idx = starts[:, None] + np.arange(L)[None]
-    truth = premultiplied(data.rgba[idx])
-    views = data.views[idx]
+    idx = starts[:, None] + np.arange(data.length)[None]
+    return score_rollouts(stepper, data, data.rgba[idx], data.views[idx], seed)
+
+
+def score_rollouts(stepper, data: SequenceData, truth: np.ndarray, views: np.ndarray,
+                   seed: int = 0) -> tuple[dict, dict, dict]:
+    """Per-step PSNR and SSIM (method -> list over the L - 1 predicted steps) of rollouts from
+    ``truth[:, 0]`` along ``views`` (W, L, 3), against ``truth`` (W, L, S, S, 4) straight RGBA
+    uint8, beside the baselines "near" (``data``'s training frame seen from the closest direction)
+    and "copy_first"; and the figures' arrays (truth and each method's frames, premultiplied).
+    ``truth`` need not come from ``data``: a path the footage never followed, rendered from a
+    synthetic scene's truth, is scored the same way."""
+    W, L = views.shape[:2]
+    truth_pm = premultiplied(truth)
     torch.manual_seed(seed)
-    first, vt = first_frames(data, idx[:, 0]), torch.from_numpy(views)
+    first = torch.from_numpy(np.ascontiguousarray(truth[:, 0])).permute(0, 3, 1, 2).float() / 255.0
+    vt = torch.from_numpy(np.ascontiguousarray(views, np.float32))
     preds = {"model": rollout(stepper, first, vt)}
     mean_stepper = with_temperature(stepper, 0.0)
     if mean_stepper is not None:
         preds["model_mean"] = rollout(mean_stepper, first, vt)
     methods: dict[str, np.ndarray] = {k: premultiplied(v.permute(0, 1, 3, 4, 2).numpy()) for k, v in preds.items()}
-    near = nearest_training_frames(data, views[:, 1:].reshape(-1, 3)).reshape(len(starts), L - 1)
+    near = nearest_training_frames(data, views[:, 1:].reshape(-1, 3)).reshape(W, L - 1)
     methods["near"] = premultiplied(data.rgba[near])
-    methods["copy_first"] = np.repeat(truth[:, :1], L - 1, 1)
-    per_step = lambda metric: {k: [float(np.mean([metric(m[w, t], truth[w, t + 1]) for w in range(len(starts))]))
+    methods["copy_first"] = np.repeat(truth_pm[:, :1], L - 1, 1)
+    per_step = lambda metric: {k: [float(np.mean([metric(m[w, t], truth_pm[w, t + 1]) for w in range(W)]))
                                    for t in range(L - 1)] for k, m in methods.items()}
-    return per_step(psnr), per_step(ssim), {"truth": truth, "methods": methods}
+    return per_step(psnr), per_step(ssim), {"truth": truth_pm, "methods": methods}
 
 
 def _still_view_motion(stepper, data: SequenceData, starts: np.ndarray, split: str, rollout_steps: int,

@@ -53,3 +53,11 @@ def viewpoint(eye: np.ndarray, center: np.ndarray, up: np.ndarray) -> Viewpoint:
     el = math.degrees(math.asin(np.clip(v @ up / dist, -1, 1)))
     az = math.degrees(math.atan2(v @ y_ref, v @ x_ref))
     return Viewpoint(az, el, dist)
+
+
+def eye_at(vp: Viewpoint, center: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """The camera centre (3,) standing at ``vp`` from ``center`` (3,): the inverse of :func:`viewpoint`."""
+    up = np.asarray(up, float)
+    x_ref = np.array([1.0, 0.0, 0.0])
+    u = vp.unit_vector()
+    return np.asarray(center, float) + vp.distance_m * (u[0] * x_ref + u[1] * np.cross(up, x_ref) + u[2] * up)
