@@ -142,14 +142,6 @@ def path_truth(dataset: Path, capture: Path, times: np.ndarray, views: np.ndarra
     return np.stack(out).reshape(*times.shape, size, size, 4)
 
 
-def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Angles (deg) between the viewing directions of views (..., 3) and (..., 3)."""
-    from dbb_capture.dynamic.evaluate import _unit
-
-    ua, ub = _unit(a.reshape(-1, 3)), _unit(b.reshape(-1, 3))
-    return np.degrees(np.arccos(np.clip(np.sum(ua * ub, -1), -1, 1))).reshape(a.shape[:-1])
-
-
 def new_path(run: Path, dataset: Path, capture: Path, shift: float = 0.5, windows: int = 32, seed: int = 0) -> dict:
     """Rollouts from the run's stepper (its run-time temperature) on three sets of windows at the
     test windows' times: ``own_crops`` (the test windows as preprocess cut them), ``own_path_truth``
@@ -157,7 +149,7 @@ def new_path(run: Path, dataset: Path, capture: Path, shift: float = 0.5, window
     stretch ``shift`` of the capture later, wrapped, rendered from the truth at the same times).
     Each set: mean PSNR of the model, copy-first and near over the steps, the gains, and the
     model's step 1 against the given first frame."""
-    from dbb_capture.dynamic.evaluate import nearest_training_frames
+    from dbb_capture.dynamic.evaluate import nearest_training_frames, view_angle_deg
 
     model = load_model(run)
     temperature = RunRecord.read(run).stepper.temperature
@@ -176,7 +168,7 @@ def new_path(run: Path, dataset: Path, capture: Path, shift: float = 0.5, window
             "own_path_truth": (path_truth(dataset, capture, times, own_views), own_views),
             "new_path_truth": (path_truth(dataset, capture, times, new_views), new_views)}
     out = {"run": str(run), "temperature": temperature, "windows": len(starts), "steps": L - 1, "shift": shift,
-           "new_path_turn_deg": round(float(np.median(angle_deg(new_views, own_views))), 2)}
+           "new_path_turn_deg": round(float(np.median(view_angle_deg(new_views, own_views))), 2)}
     for name, (truth, views) in sets.items():
         ps, _, figs = score_rollouts(stepper, data, truth, views, seed)
         near = nearest_training_frames(data, views[:, 1:].reshape(-1, 3))
@@ -185,7 +177,7 @@ def new_path(run: Path, dataset: Path, capture: Path, shift: float = 0.5, window
         out[name] = {"mean_psnr_db": m, "gain_vs_copy_first_db": round(m["model"] - m["copy_first"], 3),
                      "gain_vs_near_db": round(m["model"] - m["near"], 3),
                      "step1_vs_first_frame_db": round(step1, 3),
-                     "near_gap_deg": round(float(np.median(angle_deg(data.views[near], views[:, 1:].reshape(-1, 3)))), 2)}
+                     "near_gap_deg": round(float(np.median(view_angle_deg(data.views[near], views[:, 1:].reshape(-1, 3)))), 2)}
     return out
 
 

@@ -211,7 +211,9 @@ def _print_rssm(out: Path, record, what: str) -> None:
     p = ev["mean_psnr_db"]
     console.print(f"wrote {escape(str(out))}: {what}; 10-step open-loop PSNR {p['model']:.2f} dB "
                   f"(copy-first {p['copy_first']:.2f}, near {p['near']:.2f}) on {ev['windows']} {ev['split']} "
-                  f"windows; motion-energy ratio {ev['motion']['ratio']}")
+                  f"windows" + (f" (their views {ev['near_gap_deg']:.0f} deg from the nearest training view)"
+                                if "near_gap_deg" in ev else "")
+                  + f"; motion-energy ratio {ev['motion']['ratio']}")
     console.print(_rssm_words(ev, out), markup=False)
     st = record.stepper
     cal = st.temperature_calibration

@@ -54,6 +54,12 @@ def _unit(views: np.ndarray) -> np.ndarray:
     return np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1)
 
 
+def view_angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angles (degrees) between the viewing directions of views (..., 3) and (..., 3)."""
+    cos = np.sum(_unit(np.asarray(a, np.float64).reshape(-1, 3)) * _unit(np.asarray(b, np.float64).reshape(-1, 3)), -1)
+    return np.degrees(np.arccos(np.clip(cos, -1, 1))).reshape(a.shape[:-1])
+
+
 def nearest_training_frames(data: SequenceData, views: np.ndarray) -> np.ndarray:
     """Index of the training frame whose viewing direction is closest to each of ``views`` (M, 3)."""
     train = np.flatnonzero(data.splits == "train")
@@ -84,6 +90,7 @@ class EvalReport:
     ssim: dict[str, list[float]]
     motion: dict                          # motion-energy figures of the still-viewpoint rollouts
     notes: list[str]
+    near_gap_deg: float = 0.0             # median angle between a scored view and the nearest training view
 
     def mean(self, metric: str, method: str) -> float:
         return float(np.mean(getattr(self, metric)[method]))
@@ -91,6 +98,7 @@ class EvalReport:
     def to_json(self) -> dict:
         r = lambda xs: [round(float(v), 4) for v in xs]
         return {"split": self.split, "windows": self.windows, "steps": self.steps,
+                "near_gap_deg": round(self.near_gap_deg, 2),
                 "metric_space": "premultiplied RGBA in [0, 1]",
                 "psnr_db": {k: r(v) for k, v in self.psnr.items()},
                 "ssim": {k: r(v) for k, v in self.ssim.items()},
@@ -208,7 +216,9 @@ def evaluate(stepper, data: SequenceData, max_windows: int = 64, rollout_steps: 
     ps, ss, figs = _windows_scored(stepper, data, starts, seed)
     motion, still_figs = _still_view_motion(stepper, data, starts, split, rollout_steps, still_truth, still_start,
                                             seed, notes)
-    return EvalReport(split, len(starts), data.length - 1, ps, ss, motion, notes), {**figs, **still_figs}
+    views = data.views[starts[:, None] + np.arange(1, data.length)[None]].reshape(-1, 3)
+    gap = float(np.median(view_angle_deg(data.views[nearest_training_frames(data, views)], views)))
+    return EvalReport(split, len(starts), data.length - 1, ps, ss, motion, notes, gap), {**figs, **still_figs}
 
 
 # --------------------------------------------------------------------------- the run-time temperature

@@ -18,8 +18,10 @@ from dbb_capture.dynamic.evaluate import (
     motion_coherence,
     motion_energy,
     nearest_training_frames,
+    score_rollouts,
     still_view_energy,
     still_view_target,
+    view_angle_deg,
     with_temperature,
 )
 from dbb_capture.dynamic.model import Rssm
@@ -41,6 +43,19 @@ def test_on_a_static_sequence_copy_first_is_perfect(data):
     assert rep.mean("psnr", "model") < 40          # an untrained model is not perfect
     assert set(rep.psnr) == {"model", "model_mean", "near", "copy_first"} and figs["long"].shape[:2] == (1, 8)
     assert set(rep.to_json()["psnr_gain_db"]) == {"vs_copy_first", "vs_near"}
+
+
+def test_a_path_scored_from_its_own_truth(data):
+    """A path along training viewpoints whose truth is those very frames: "near" is perfect and
+    its views are 0 deg from the training views; the test windows' report says how far theirs are."""
+    train = np.flatnonzero(data.splits == "train")[:data.length * 2].reshape(2, data.length)
+    ps, _, figs = score_rollouts(Stepper(Rssm(SMALL).eval()), data, data.rgba[train], data.views[train])
+    assert set(ps) == {"model", "model_mean", "near", "copy_first"} and len(ps["near"]) == data.length - 1
+    assert min(ps["near"]) >= 60 and figs["truth"].shape == (2, data.length, *data.rgba.shape[1:])
+    assert np.allclose(view_angle_deg(data.views[train], data.views[train]), 0, atol=1e-4)
+    assert view_angle_deg(np.array([[0.0, 0.0, 1.0]]), np.array([[90.0, 0.0, 2.0]]))[0] == pytest.approx(90.0)
+    rep, _ = evaluate(Stepper(Rssm(SMALL).eval()), data, max_windows=2, rollout_steps=4)
+    assert rep.to_json()["near_gap_deg"] == pytest.approx(rep.near_gap_deg, abs=0.01) and rep.near_gap_deg >= 0
 
 
 def test_metrics_known_values(crops, data):
