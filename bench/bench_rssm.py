@@ -122,33 +122,53 @@ def still_truth(dataset: Path, capture: Path, steps: int = 150, samples: int = 2
                                                       np.float32), "truth": truth, "frame": k}
 
 
-def path_truth(dataset: Path, capture: Path, times: np.ndarray, views: np.ndarray, samples: int = 2) -> np.ndarray:
-    """The synthetic capture's object rendered through the crop camera that preprocess would cut
-    at each of ``views`` (..., 3) at ``times`` (...) s: straight RGBA uint8 (..., S, S, 4)."""
+def crop_cameras(dataset: Path, views: np.ndarray) -> list[tuple[np.ndarray, object]]:
+    """The crop camera (OpenCV c2w (4, 4), intrinsics) that preprocess would cut at each of
+    ``views`` (..., 3) of the dataset's object sphere (board frame), flattened."""
     from dbb_capture.crops.camera import facing_camera
     from dbb_capture.geometry.viewpoint import Viewpoint, eye_at
-    from dbb_capture.synth.capture import load_ground_truth
-    from dbb_capture.synth.render import render_object_rgba
 
     doc = json.loads((Path(dataset) / "crops.json").read_text())
     center, radius = np.asarray(doc["object"]["center"]), float(doc["object"]["radius"])
     up, size, fill = np.asarray(doc["up"], float), int(doc["crop_size"]), float(doc["crop_fill"])
+    return [facing_camera(eye_at(Viewpoint(*map(float, v)), center, up), center, radius, up, size, fill)
+            for v in views.reshape(-1, 3)]
+
+
+def path_truth(dataset: Path, capture: Path, times: np.ndarray, views: np.ndarray, samples: int = 2) -> np.ndarray:
+    """The synthetic capture's object rendered through the crop camera of each of ``views``
+    (..., 3) at ``times`` (...) s: straight RGBA uint8 (..., S, S, 4)."""
+    from dbb_capture.synth.capture import load_ground_truth
+    from dbb_capture.synth.render import render_object_rgba
+
     _, _, obj = load_ground_truth(capture)
-    out = []
-    for t, v in zip(times.reshape(-1), views.reshape(-1, 3)):
-        eye = eye_at(Viewpoint(*map(float, v)), center, up)
-        c2w, intr = facing_camera(eye, center, radius, up, size, fill)
-        out.append(render_object_rgba(obj, intr, c2w, float(t), samples))
-    return np.stack(out).reshape(*times.shape, size, size, 4)
+    out = [render_object_rgba(obj, intr, c2w, float(t), samples)
+           for t, (c2w, intr) in zip(times.reshape(-1), crop_cameras(dataset, views))]
+    return np.stack(out).reshape(*times.shape, *out[0].shape)
 
 
-def new_path(run: Path, dataset: Path, capture: Path, shift: float = 0.5, windows: int = 32, seed: int = 0) -> dict:
+def tree_renders(tree_run: Path, dataset: Path, views: np.ndarray) -> np.ndarray:
+    """A PlenOctree run's tree (``tree.npz``) rendered through the crop camera of each of
+    ``views`` (..., 3): straight RGBA uint8 (..., S, S, 4)."""
+    from dbb_capture.octree.render import TreeRenderer
+    from dbb_capture.octree.tree import PlenOctree
+
+    r = TreeRenderer(PlenOctree.load(Path(tree_run) / "tree.npz"))
+    out = [np.clip(np.round(r.render(c2w, intr) * 255), 0, 255).astype(np.uint8)
+           for c2w, intr in crop_cameras(dataset, views)]
+    return np.stack(out).reshape(*views.shape[:-1], *out[0].shape)
+
+
+def new_path(run: Path, dataset: Path, capture: Path, shift: float = 0.5, windows: int = 32, seed: int = 0,
+             anchor: Path | None = None) -> dict:
     """Rollouts from the run's stepper (its run-time temperature) on three sets of windows at the
     test windows' times: ``own_crops`` (the test windows as preprocess cut them), ``own_path_truth``
-    (the same viewpoints rendered from the truth) and ``new_path_truth`` (the viewpoints of the
-    stretch ``shift`` of the capture later, wrapped, rendered from the truth at the same times).
+    (the same viewpoints rendered from the truth), ``new_path_truth`` (the viewpoints of the
+    stretch ``shift`` of the capture later, wrapped, rendered from the truth at the same times) and
+    ``reversed_path_truth`` (from each window's first view, the camera turning the opposite way).
     Each set: mean PSNR of the model, copy-first and near over the steps, the gains, and the
-    model's step 1 against the given first frame."""
+    model's step 1 against the given first frame; with ``anchor`` (a PlenOctree run trained on the
+    same dataset) also that tree's render at each predicted step's view ("anchor")."""
     from dbb_capture.dynamic.evaluate import nearest_training_frames, view_angle_deg
 
     model = load_model(run)
@@ -164,15 +184,23 @@ def new_path(run: Path, dataset: Path, capture: Path, shift: float = 0.5, window
     moved = (starts[:, None] + int(round(shift * n))) % (n - L + 1) + np.arange(L)[None]
     new_views = data.views[moved].copy()
     new_views[..., 2] = own_views[..., 2]          # the same distance: only the direction is new
+    back = own_views.copy()                        # from the same first view, the camera turning the other way
+    back[..., :2] = 2 * own_views[:, :1, :2] - own_views[..., :2]
+    back[..., 1] = np.clip(back[..., 1], -85.0, 85.0)
     sets = {"own_crops": (data.rgba[idx], own_views),
             "own_path_truth": (path_truth(dataset, capture, times, own_views), own_views),
-            "new_path_truth": (path_truth(dataset, capture, times, new_views), new_views)}
+            "new_path_truth": (path_truth(dataset, capture, times, new_views), new_views),
+            "reversed_path_truth": (path_truth(dataset, capture, times, back), back)}
     out = {"run": str(run), "temperature": temperature, "windows": len(starts), "steps": L - 1, "shift": shift,
            "new_path_turn_deg": round(float(np.median(view_angle_deg(new_views, own_views))), 2)}
     for name, (truth, views) in sets.items():
         ps, _, figs = score_rollouts(stepper, data, truth, views, seed)
         near = nearest_training_frames(data, views[:, 1:].reshape(-1, 3))
         m = {k: round(float(np.mean(v)), 3) for k, v in ps.items()}
+        if anchor is not None:
+            a = premultiplied(tree_renders(anchor, dataset, views[:, 1:]))
+            m["anchor"] = round(float(np.mean([psnr(a[w, t], figs["truth"][w, t + 1])
+                                               for w in range(len(starts)) for t in range(L - 1)])), 3)
         step1 = float(np.mean([psnr(figs["methods"]["model"][w, 0], figs["truth"][w, 0]) for w in range(len(starts))]))
         out[name] = {"mean_psnr_db": m, "gain_vs_copy_first_db": round(m["model"] - m["copy_first"], 3),
                      "gain_vs_near_db": round(m["model"] - m["near"], 3),
@@ -568,6 +596,8 @@ def main() -> None:
     n.add_argument("--capture", type=Path, required=True, help="the synthetic capture the dataset came from")
     n.add_argument("--shift", type=float, default=0.5, help="the new path's viewpoints: those this fraction of the capture later")
     n.add_argument("--windows", type=int, default=32)
+    n.add_argument("--anchor", type=Path, default=None,
+                   help="a dbb-train plenoctree run on the same dataset: its renders scored too, as 'anchor'")
     b = sub.add_parser("blurred-copy", help="the score of copy-first blurred more at each step (a hedge)")
     b.add_argument("dataset", type=Path)
     b.add_argument("--sigma", type=float, action="append", default=[], help="pixels at step 1 (repeatable)")
@@ -593,7 +623,7 @@ def main() -> None:
         out = motion(a.run, a.dataset, still, a.temperature or [0.0, 1.0, 2.0], a.samples,
                      model=with_settings(load_model(a.run), a.set))
     elif a.cmd == "new-path":
-        out = new_path(a.run, a.dataset, a.capture, a.shift, a.windows)
+        out = new_path(a.run, a.dataset, a.capture, a.shift, a.windows, anchor=a.anchor)
     elif a.cmd == "blurred-copy":
         out = [blurred_copy(a.dataset, s) for s in (a.sigma or [0.5])]
     elif a.cmd == "speed":
