@@ -147,21 +147,17 @@ def path_truth(dataset: Path, capture: Path, times: np.ndarray, views: np.ndarra
     return np.stack(out).reshape(*times.shape, *out[0].shape)
 
 
-def tree_renders(tree_run: Path, dataset: Path, views: np.ndarray) -> np.ndarray:
-    """A PlenOctree run's tree (``tree.npz``) rendered through the crop camera of each of
-    ``views`` (..., 3): straight RGBA uint8 (..., S, S, 4)."""
-    from dbb_capture.octree.render import TreeRenderer
-    from dbb_capture.octree.tree import PlenOctree
-
-    r = TreeRenderer(PlenOctree.load(Path(tree_run) / "tree.npz"))
-    out = [np.clip(np.round(r.render(c2w, intr) * 255), 0, 255).astype(np.uint8)
+def tree_renders(renderer, dataset: Path, views: np.ndarray) -> np.ndarray:
+    """A PlenOctree's renders (``renderer``: its :class:`~dbb_capture.octree.render.TreeRenderer`)
+    through the crop camera of each of ``views`` (..., 3): straight RGBA uint8 (..., S, S, 4)."""
+    out = [np.clip(np.round(renderer.render(c2w, intr) * 255), 0, 255).astype(np.uint8)
            for c2w, intr in crop_cameras(dataset, views)]
     return np.stack(out).reshape(*views.shape[:-1], *out[0].shape)
 
 
 def new_path(run: Path, dataset: Path, capture: Path, shift: float = 0.5, windows: int = 32, seed: int = 0,
              anchor: Path | None = None) -> dict:
-    """Rollouts from the run's stepper (its run-time temperature) on three sets of windows at the
+    """Rollouts from the run's stepper (its run-time temperature) on four sets of windows at the
     test windows' times: ``own_crops`` (the test windows as preprocess cut them), ``own_path_truth``
     (the same viewpoints rendered from the truth), ``new_path_truth`` (the viewpoints of the
     stretch ``shift`` of the capture later, wrapped, rendered from the truth at the same times) and
@@ -169,8 +165,11 @@ def new_path(run: Path, dataset: Path, capture: Path, shift: float = 0.5, window
     Each set: mean PSNR of the model, copy-first and near over the steps, the gains, and the
     model's step 1 against the given first frame; with ``anchor`` (a PlenOctree run trained on the
     same dataset) also that tree's render at each predicted step's view ("anchor")."""
-    from dbb_capture.dynamic.evaluate import nearest_training_frames, view_angle_deg
+    from dbb_capture.dynamic.evaluate import view_angle_deg
+    from dbb_capture.octree.render import TreeRenderer
+    from dbb_capture.octree.tree import PlenOctree
 
+    tree = None if anchor is None else TreeRenderer(PlenOctree.load(Path(anchor) / "tree.npz"))
     model = load_model(run)
     temperature = RunRecord.read(run).stepper.temperature
     stepper = Stepper(model, temperature)
@@ -195,17 +194,16 @@ def new_path(run: Path, dataset: Path, capture: Path, shift: float = 0.5, window
            "new_path_turn_deg": round(float(np.median(view_angle_deg(new_views, own_views))), 2)}
     for name, (truth, views) in sets.items():
         ps, _, figs = score_rollouts(stepper, data, truth, views, seed)
-        near = nearest_training_frames(data, views[:, 1:].reshape(-1, 3))
         m = {k: round(float(np.mean(v)), 3) for k, v in ps.items()}
-        if anchor is not None:
-            a = premultiplied(tree_renders(anchor, dataset, views[:, 1:]))
+        if tree is not None:
+            a = premultiplied(tree_renders(tree, dataset, views[:, 1:]))
             m["anchor"] = round(float(np.mean([psnr(a[w, t], figs["truth"][w, t + 1])
                                                for w in range(len(starts)) for t in range(L - 1)])), 3)
         step1 = float(np.mean([psnr(figs["methods"]["model"][w, 0], figs["truth"][w, 0]) for w in range(len(starts))]))
         out[name] = {"mean_psnr_db": m, "gain_vs_copy_first_db": round(m["model"] - m["copy_first"], 3),
                      "gain_vs_near_db": round(m["model"] - m["near"], 3),
                      "step1_vs_first_frame_db": round(step1, 3),
-                     "near_gap_deg": round(float(np.median(view_angle_deg(data.views[near], views[:, 1:].reshape(-1, 3)))), 2)}
+                     "near_gap_deg": round(figs["near_gap_deg"], 2)}
     return out
 
 

@@ -121,7 +121,8 @@ def score_rollouts(stepper, data: SequenceData, truth: np.ndarray, views: np.nda
     """Per-step PSNR and SSIM (method -> list over the L - 1 predicted steps) of rollouts from
     ``truth[:, 0]`` along ``views`` (W, L, 3), against ``truth`` (W, L, S, S, 4) straight RGBA
     uint8, beside the baselines "near" (``data``'s training frame seen from the closest direction)
-    and "copy_first"; and the figures' arrays (truth and each method's frames, premultiplied).
+    and "copy_first"; and the figures' arrays (truth and each method's frames, premultiplied, and
+    ``near_gap_deg``: the median angle between a predicted step's view and its "near" frame's).
     ``truth`` need not come from ``data``: a path the footage never followed, rendered from a
     synthetic scene's truth, is scored the same way."""
     W, L = views.shape[:2]
@@ -135,11 +136,12 @@ def score_rollouts(stepper, data: SequenceData, truth: np.ndarray, views: np.nda
         preds["model_mean"] = rollout(mean_stepper, first, vt)
     methods: dict[str, np.ndarray] = {k: premultiplied(v.permute(0, 1, 3, 4, 2).numpy()) for k, v in preds.items()}
     near = nearest_training_frames(data, views[:, 1:].reshape(-1, 3)).reshape(W, L - 1)
+    gap = float(np.median(view_angle_deg(data.views[near], views[:, 1:])))
     methods["near"] = premultiplied(data.rgba[near])
     methods["copy_first"] = np.repeat(truth_pm[:, :1], L - 1, 1)
     per_step = lambda metric: {k: [float(np.mean([metric(m[w, t], truth_pm[w, t + 1]) for w in range(W)]))
                                    for t in range(L - 1)] for k, m in methods.items()}
-    return per_step(psnr), per_step(ssim), {"truth": truth_pm, "methods": methods}
+    return per_step(psnr), per_step(ssim), {"truth": truth_pm, "methods": methods, "near_gap_deg": gap}
 
 
 def _still_view_motion(stepper, data: SequenceData, starts: np.ndarray, split: str, rollout_steps: int,
@@ -216,9 +218,8 @@ def evaluate(stepper, data: SequenceData, max_windows: int = 64, rollout_steps: 
     ps, ss, figs = _windows_scored(stepper, data, starts, seed)
     motion, still_figs = _still_view_motion(stepper, data, starts, split, rollout_steps, still_truth, still_start,
                                             seed, notes)
-    views = data.views[starts[:, None] + np.arange(1, data.length)[None]].reshape(-1, 3)
-    gap = float(np.median(view_angle_deg(data.views[nearest_training_frames(data, views)], views)))
-    return EvalReport(split, len(starts), data.length - 1, ps, ss, motion, notes, gap), {**figs, **still_figs}
+    return (EvalReport(split, len(starts), data.length - 1, ps, ss, motion, notes, figs["near_gap_deg"]),
+            {**figs, **still_figs})
 
 
 # --------------------------------------------------------------------------- the run-time temperature
