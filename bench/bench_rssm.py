@@ -51,17 +51,20 @@ from dbb_capture.dynamic.config import (
     apply_preset,
     configs_from_settings,
 )
+from dbb_capture.dynamic.anchor import ViewAtlas, atlas_grid
 from dbb_capture.dynamic.data import batch as window_batch
-from dbb_capture.dynamic.data import load_sequences
+from dbb_capture.dynamic.anchor import ViewAtlas, atlas_grid
+from dbb_capture.dynamic.data import SequenceData, anchor_batch, load_sequences
 from dbb_capture.dynamic.evaluate import evaluate as evaluate_stepper
 from dbb_capture.dynamic.evaluate import motion_coherence, score_rollouts
 from dbb_capture.dynamic.model import Rssm, decoder_input, sample
-from dbb_capture.dynamic.networks import warp_maps
+from dbb_capture.dynamic.networks import image_pyramid, warp_maps
 from dbb_capture.dynamic.record import RunRecord
 from dbb_capture.dynamic.rgba import premultiplied, premultiply
 from dbb_capture.dynamic.run import (
     eval_run,
     load_model,
+    load_run_data,
     resume_configs,
     run_eval,
     train_run,
@@ -74,7 +77,11 @@ def speed(size: int, steps: int = 300, settings: list[str] = (), repeat: int = 1
     """Frames per second of the TorchScript stepper (batch 1) over ``steps`` steps, ``repeat`` times:
     the median, and every repetition (a shared machine's timings vary by tens of per cent)."""
     model = Rssm(replace(overrides(list(settings), preset=preset)[0], size=size)).eval()
-    ts = script_stepper(model)
+    atlas = None
+    if model.cfg.anchor:        # an atlas of the size footage seen from 0-60 deg elevation gets
+        grid = atlas_grid(np.array([[0.0, 0.0, 0.7], [0.0, 60.0, 0.7]]), size)
+        atlas = ViewAtlas(torch.randint(0, 256, (grid.n_el, grid.n_az, 4, size, size), dtype=torch.uint8), grid)
+    ts = script_stepper(model, atlas=atlas)
     with torch.no_grad():
         h, z = ts.start(torch.rand(1, 4, size, size), torch.tensor([[30.0, 40.0, 0.7]]))
         view = torch.tensor([[30.0, 40.0, 0.7]])
@@ -170,10 +177,9 @@ def new_path(run: Path, dataset: Path, capture: Path, shift: float = 0.5, window
     from dbb_capture.octree.tree import PlenOctree
 
     tree = None if anchor is None else TreeRenderer(PlenOctree.load(Path(anchor) / "tree.npz"))
-    model = load_model(run)
+    model, data = run_data(run, dataset)
     temperature = RunRecord.read(run).stepper.temperature
-    stepper = Stepper(model, temperature)
-    data = load_sequences(dataset, model.cfg.size)
+    stepper = Stepper(model, temperature, data.atlas)
     starts = data.starts("test")
     if len(starts) > windows:
         starts = starts[np.linspace(0, len(starts) - 1, windows).round().astype(int)]
@@ -207,6 +213,12 @@ def new_path(run: Path, dataset: Path, capture: Path, shift: float = 0.5, window
     return out
 
 
+def run_data(run: Path, dataset: Path, model: Rssm | None = None) -> tuple[Rssm, SequenceData]:
+    """The run's model (or ``model``, e.g. :func:`with_settings` of it) and ``dataset`` with the run's view anchor."""
+    own, data = load_run_data(run, dataset)
+    return (own if model is None else model).eval(), data
+
+
 def with_settings(model: Rssm, settings: list[str]) -> Rssm:
     """``model`` rebuilt with other settings (``NAME=VALUE``) and the same weights: for settings
     that leave the weights' shapes alone, e.g. ``warp_leak`` tried on a model trained with another."""
@@ -222,8 +234,7 @@ def evaluate(run: Path, dataset: Path, still: dict | None, temperature: float, n
              model: Rssm | None = None) -> dict:
     """Evaluate a run folder (again; its model.pt unless ``model``) at ``temperature``, into
     ``run/name``; the report's figures."""
-    model = model if model is not None else load_model(run)
-    data = load_sequences(dataset, model.cfg.size)
+    model, data = run_data(run, dataset, model)
     ck = run / "checkpoint.pt"
     history = torch.load(ck, weights_only=False)["history"] if ck.is_file() else []
     kw = {} if still is None else {"still_truth": still["truth"], "still_start": (still["first"], still["view"])}
@@ -240,12 +251,11 @@ def train_test_gap(run: Path, dataset: Path, temperature: float, windows: int = 
     A model that fits its training windows far better than held-out ones has learned which pose
     goes with which training view and window, not how the toy moves.
     """
-    model = model if model is not None else load_model(run)
-    data = load_sequences(dataset, model.cfg.size)
+    model, data = run_data(run, dataset, model)
     out = {}
     for split in ("train", "test"):
         sub = replace(data, windows=[(s, "test") for s, sp in data.windows if sp == split])
-        rep, _ = evaluate_stepper(Stepper(model, temperature), sub, max_windows=windows, rollout_steps=3)
+        rep, _ = evaluate_stepper(Stepper(model, temperature, data.atlas), sub, max_windows=windows, rollout_steps=3)
         out[split] = round(rep.mean("psnr", "model") - rep.mean("psnr", "copy_first"), 3)
     return out
 
@@ -278,9 +288,8 @@ def first_step(run: Path, dataset: Path, split: str = "test", temperature: float
     alone (the warped context frame with warp share 1, the generated content with share 0), the mean
     warp share on the object (truth or context alpha > 0.5) and the step flow's mean and
     95th-percentile length in pixels there."""
-    model = (model if model is not None else load_model(run)).eval()
+    model, data = run_data(run, dataset, model)
     cfg = model.cfg
-    data = load_sequences(dataset, cfg.size)
     starts = data.starts(split)
     x, views = window_batch(data, starts, torch.device("cpu"))          # premultiplied (W, L, 4, S, S)
     torch.manual_seed(seed)
@@ -293,8 +302,11 @@ def first_step(run: Path, dataset: Path, split: str = "test", temperature: float
     change = view_delta_encoding(pe[:, 1], pe[:, 0])             # since the context frame, which is the last
     feat = decoder_input(h1, z1, change, change)
     ident = dec.grid.expand(len(starts), -1, -1, -1)
-    frame, grid = dec(feat, ctx, ctx_pm, ident)
-    xh = dec.heads(feat, warp_maps(ctx, ident), dec.state_keypoints(feat))
+    a = anchor_batch(data, starts, torch.device("cpu"))
+    anchor, ctx_anchor = (None, None) if a is None else (a[:, 1], image_pyramid(a[:, 0], len(dec.ups)))
+    frame, grid = dec(feat, ctx, ctx_pm, ident, None, anchor, ctx_anchor)
+    xh = dec.heads(feat, warp_maps(ctx, ident), dec.state_keypoints(feat),
+                   [] if anchor is None else dec.anchor_maps(anchor, ctx_anchor))
     flow = torch.tanh(xh[:, 5:7]) * dec.max_step_flow
     warped = torch.nn.functional.grid_sample(ctx_pm, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
     gen = torch.sigmoid(xh[:, :4])
@@ -320,8 +332,7 @@ def protocols(run: Path, dataset: Path, samples: int = 8, temperature: float = 1
     sampled rollout per window: the run-time protocol, what the bar is claimed on), ``mean_of_samples``
     (the mean frame of ``samples`` rollouts: a hedge no run-time stepper draws) and ``best_of_samples``
     (each window's best rollout by its 10-step PSNR, chosen with the truth: SVG/SAVP's oracle)."""
-    model = (model if model is not None else load_model(run)).eval()
-    data = load_sequences(dataset, model.cfg.size)
+    model, data = run_data(run, dataset, model)
     starts = data.starts("test")
     if len(starts) > max_windows:
         starts = starts[np.linspace(0, len(starts) - 1, max_windows).round().astype(int)]
@@ -331,7 +342,7 @@ def protocols(run: Path, dataset: Path, samples: int = 8, temperature: float = 1
     runs = []
     for i in range(samples):
         torch.manual_seed(i)
-        runs.append(premultiply(rollout(Stepper(model, temperature), first, views)).numpy())
+        runs.append(premultiply(rollout(Stepper(model, temperature, data.atlas), first, views)).numpy())
     runs = np.stack(runs)                                                   # (N, W, T, 4, S, S)
 
     def window_psnr(pred: np.ndarray) -> np.ndarray:                        # (W, T, ...) -> (W,) mean over steps
@@ -397,7 +408,7 @@ def motion(run: Path, dataset: Path, still: dict, temperatures: list[float] = (0
     motion carries a part across the frame, beside the truth's; ``miss_px`` and ``stray_px``
     (:func:`path_distance` between the rollout's and the truth's centroids): whether it carries it
     where the truth's goes (travel alone counts a part sliding the wrong way as a swing)."""
-    model = (model if model is not None else load_model(run)).eval()
+    model, data = run_data(run, dataset, model)
     truth = premultiplied(still["truth"])
     n = len(truth)
     t_e = np.abs(np.diff(truth.astype(np.float64), axis=0)).mean(axis=(1, 2, 3))       # (n - 1,)
@@ -411,7 +422,7 @@ def motion(run: Path, dataset: Path, still: dict, temperatures: list[float] = (0
         rows = []
         for s in range(samples if temp > 0 else 1):
             torch.manual_seed(s + 1)
-            long = premultiplied(rollout(Stepper(model, temp), f0, views)[0].permute(0, 2, 3, 1).numpy())
+            long = premultiplied(rollout(Stepper(model, temp, data.atlas), f0, views)[0].permute(0, 2, 3, 1).numpy())
             p_e = np.abs(np.diff(long.astype(np.float64), axis=0)).mean(axis=(1, 2, 3))
             coh = motion_coherence(long)
             path = centroids(long, background)
@@ -424,12 +435,11 @@ def motion(run: Path, dataset: Path, still: dict, temperatures: list[float] = (0
         out["per_temperature"][f"{temp:g}"] = rows
     out["truth_coherence"] = round(motion_coherence(truth), 3)
     out["truth_travel_px"] = round(spread(truth_path), 2)
-    data = load_sequences(dataset, model.cfg.size)
     starts = data.starts("test")[:64]
     x, v = window_batch(data, starts, torch.device("cpu"))                              # premultiplied
     torch.manual_seed(0)
     first = torch.from_numpy(data.rgba[starts]).permute(0, 3, 1, 2).float() / 255.0
-    pred = premultiply(rollout(Stepper(model, 1.0), first, v))
+    pred = premultiply(rollout(Stepper(model, 1.0, data.atlas), first, v))
     seq = torch.cat([x[:, :1], pred], 1).numpy()
     e = lambda a: np.abs(np.diff(a.astype(np.float64), axis=1)).mean(axis=(0, 2, 3, 4))
     out["test_windows_ratio_per_step"] = [round(float(a / b), 3) for a, b in zip(e(seq), e(x.numpy()))]

@@ -146,6 +146,10 @@ def build_dynamic(run: Path, rec, tmp: Path, dataset: Path | None, prog) -> Mani
     (tmp / "model").mkdir()
     shutil.copyfile(Path(run) / rec.stepper.file, tmp / "model" / "stepper.ts")
     shutil.copyfile(Path(run) / rec.model_file, tmp / "model" / "rssm.pt")
+    anchor = Path(run) / "anchor" / "tree.npz"      # the view anchor (its renders are in stepper.ts)
+    if rec.config.anchor:
+        _need(run, "anchor/tree.npz")
+        shutil.copyfile(anchor, tmp / "model" / "anchor.npz")
     size = rec.stepper.frame_size
     fill = float(rec.crop.get("fill") or 0.9)
     first = load_dataset(ds_file).frames[0]
@@ -159,7 +163,11 @@ def build_dynamic(run: Path, rec, tmp: Path, dataset: Path | None, prog) -> Mani
         kind="dynamic",
         model={"type": "rssm", "file": "model/stepper.ts", "format": "TorchScript",
                "weights": "model/rssm.pt", "api": rec.stepper.to_json()["api"],
-               "temperature": rec.stepper.temperature, "fps": rec.stepper.fps},
+               "temperature": rec.stepper.temperature, "fps": rec.stepper.fps,
+               **({"anchor": {"file": "model/anchor.npz", "format": "svox N3Tree npz",
+                              "note": "the view anchor: a PlenOctree of the capture's mean shape, whose renders "
+                                      "the stepper reads (stepper.ts carries them as an atlas)"}}
+                  if rec.config.anchor else {})},
         inputs={"first_frame": "model/first_frame.png", "first_view": [vp.azimuth_deg, vp.elevation_deg,
                                                                        vp.distance_m],
                 "view": "[azimuth_deg, elevation_deg, distance_m] of the camera from the object centre: "

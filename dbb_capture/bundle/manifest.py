@@ -11,7 +11,8 @@ A bundle is a folder (or the same folder zipped, ``.dbb``) holding:
 - ``manifest.sha256``: the sha256 of ``manifest.json`` (``sha256sum -c`` format), so a changed
   byte anywhere in the bundle is caught;
 - ``model/``: static — ``plenoctree.npz`` (svox ``N3Tree`` npz, copied byte for byte from the
-  run); dynamic — ``stepper.ts`` (TorchScript stepper), ``rssm.pt`` (weights and config) and
+  run); dynamic — ``stepper.ts`` (TorchScript stepper), ``rssm.pt`` (weights and config), ``anchor.npz``
+  (the view anchor's PlenOctree, whose renders the stepper carries) and
   ``first_frame.png`` (the straight RGBA context frame, with its viewpoint in the manifest);
 - ``proxy.glb``: the physics proxy (:mod:`dbb_capture.bundle.proxy`) in bundle space;
 - ``previews/``: ``turntable.gif``, ``sheet.png`` (straight RGBA, several elevations), and for

@@ -83,6 +83,9 @@ class RssmConfig:
                                    # GRU's forecast settles
     osc_keep_min: float = 0.0      # floor of each mode's kept length a step (e.g. 0.999: rings ~1000 steps);
                                    # trained freely the modes learn to damp within 10-50 steps
+    anchor: bool = True            # the decoder reads a PlenOctree of the capture, fitted to its crops
+                                   # (dynamic/anchor.py), at the drawn view: how the object looks from a
+                                   # view comes from a 3D model, the RSSM supplies what moves
     loss_scales: dict[str, float] = field(default_factory=lambda: dict(LOSS_SCALES))
 
     def scale(self, term: str) -> float:
@@ -156,6 +159,8 @@ class TrainConfig:
                                    # transition and prior alone (latent_loss: posteriors fixed, nothing
                                    # decoded), so the dynamics get many updates for each costly one
                                    # (a non-finite one is skipped and counted)
+    anchor_share: float = 0.2      # the share of a minutes budget spent fitting the view anchor (with a
+                                   # steps budget it trains as many steps as the RSSM)
     dynamics_horizon: int | None = None  # the latent-only steps' windows: 1 context + this many frames, cut
                                    # from consecutive training frames; None: the dataset's windows. Nothing
                                    # is decoded there, so windows many times longer cost little
@@ -172,6 +177,8 @@ class TrainConfig:
             raise DbbError(f"ema must be in [0, 1), not {self.ema}")
         if self.dynamics_steps < 0:
             raise DbbError(f"dynamics_steps must be at least 0, not {self.dynamics_steps}")
+        if not 0.0 < self.anchor_share < 1.0:
+            raise DbbError(f"anchor_share must be above 0 and below 1, not {self.anchor_share}")
         if self.dynamics_horizon is not None and self.dynamics_horizon < 1:
             raise DbbError(f"dynamics_horizon must be at least 1, not {self.dynamics_horizon}")
 

@@ -3,7 +3,7 @@ and their augmentation."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +18,7 @@ from ..crops.sequences import sequence_windows
 from ..datasets.images import load_rgba
 from ..datasets.entries import frame_split, up_vector
 from ..datasets.transforms import find_dataset_file, load_dataset, missing_crops
+from .anchor import ViewAtlas
 from .rgba import premultiply
 
 
@@ -33,6 +34,8 @@ class SequenceData:
     windows: list[tuple[int, str]]  # (start, split)
     length: int                    # frames per window (1 context + predicted)
     meta: dict = field(default_factory=dict)
+    atlas: ViewAtlas | None = None  # the view anchor (with_anchor), and its render at each frame's view:
+    anchor: np.ndarray | None = None  # (N, 4, S, S) uint8 premultiplied RGBA
 
     def starts(self, split: str) -> np.ndarray:
         return np.array([s for s, sp in self.windows if sp == split], dtype=np.int64)
@@ -82,6 +85,16 @@ def load_sequences(dataset: Path, size: int = 64) -> SequenceData:
                       for fr in ds.frames], np.float32)
     return SequenceData(src, imgs, views, splits, np.array([fr.time for fr in ds.frames]), windows, length,
                         dict(meta))
+
+
+def with_anchor(data: SequenceData, atlas: ViewAtlas | None) -> SequenceData:
+    """``data`` with the view anchor ``atlas`` and its render at every frame's view (None: without)."""
+    if atlas is None:
+        return replace(data, atlas=None, anchor=None)
+    views = torch.from_numpy(data.views)
+    with torch.no_grad():
+        a = torch.cat([atlas(views[i:i + 256]) for i in range(0, len(views), 256)])
+    return replace(data, atlas=atlas, anchor=(a * 255).round().to(torch.uint8).numpy())
 
 
 def _windows(value: object, length: int, n: int, where: str) -> list[tuple[int, str]]:
@@ -136,22 +149,38 @@ def batch(data: SequenceData, starts: np.ndarray, device: torch.device,
     return premultiply(x), torch.from_numpy(data.views[idx]).to(device)
 
 
+def anchor_batch(data: SequenceData, starts: np.ndarray, device: torch.device,
+                 length: int | None = None) -> torch.Tensor | None:
+    """The view anchor's premultiplied RGBA (B, L, 4, S, S) float at the views of the windows
+    starting at ``starts`` (as :func:`batch`); None without an anchor."""
+    if data.anchor is None:
+        return None
+    idx = starts[:, None] + np.arange(length or data.length)[None]
+    return torch.from_numpy(data.anchor[idx]).to(device).float() / 255.0
+
+
 def first_frames(data: SequenceData, idx: np.ndarray) -> torch.Tensor:
     """Straight RGBA (B, 4, S, S) float of frames ``idx`` (B,): what a rollout starts from."""
     return torch.from_numpy(data.rgba[idx]).permute(0, 3, 1, 2).float() / 255.0
 
 
-def augment(x: torch.Tensor, views: torch.Tensor, how: str, rng: np.random.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+def augment(x: torch.Tensor, views: torch.Tensor, how: str, rng: np.random.Generator,
+            anchor: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """Training windows ``x`` (B, L, 4, S, S), ``views`` (B, L, 3), each changed with probability 1/2
     as ``how`` asks (``TrainConfig.augment``): "flip" mirrors the frames left-right and negates the
     azimuth (the mirrored toy seen from the mirrored side), "reverse" plays the window backwards.
     "shift" moves every window by a random whole-pixel offset of up to S/16 (:func:`shift_windows`).
+    The view anchor's renders ``anchor`` (B, L, 4, S, S) change with their frames (a mirrored
+    render, not the render at the negated azimuth: the mirrored toy's anchor).
 
     The toy is seen along one camera path, each viewpoint at one time: the model can learn which
     pose goes with which view and window instead of how the toy moves (2-5 dB better on training
     windows than on held-out ones without these; docs/decisions.md, augment); mirrored and reversed
     windows are motions it has not seen.
     """
+    if anchor is not None:
+        x, views, _ = augment(torch.cat([x, anchor], 2), views, how, rng)
+        return x[:, :, :4], views, x[:, :, 4:]
     kinds = set(how.split(","))
     B = x.shape[0]
     if "flip" in kinds:
@@ -164,7 +193,7 @@ def augment(x: torch.Tensor, views: torch.Tensor, how: str, rng: np.random.Gener
         views = torch.where(r[:, None, None], views.flip(1), views)
     if "shift" in kinds:
         x = shift_windows(x, rng.integers(-(x.shape[-1] // 16), x.shape[-1] // 16 + 1, size=(B, 2)))
-    return x, views
+    return x, views, None
 
 
 def shift_windows(x: torch.Tensor, offsets: np.ndarray) -> torch.Tensor:

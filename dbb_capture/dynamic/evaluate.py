@@ -258,7 +258,7 @@ def still_view_target(model: Rssm, data: SequenceData, starts: np.ndarray, lengt
     x = torch.from_numpy(data.rgba[idx]).permute(0, 1, 4, 2, 3).float() / 255.0     # (B, L, 4, S, S)
     if data.fixed_camera():
         return motion_energy(premultiply(x[:, 1:].transpose(0, 1)).numpy())
-    st = Stepper(model.cpu().eval(), 0.0)
+    st = Stepper(model.cpu().eval(), 0.0, data.atlas)
     v = torch.from_numpy(data.views[idx])
     h, z = st.start(x[:, 0], v[:, 0])
     frames = []
@@ -276,7 +276,7 @@ def still_view_energy(model: Rssm, data: SequenceData, starts: np.ndarray, lengt
     first = first_frames(data, starts).repeat(samples, 1, 1, 1)
     views = torch.from_numpy(data.views[starts])[:, None].expand(-1, length, -1).repeat(samples, 1, 1)
     torch.manual_seed(seed)
-    frames = rollout(Stepper(model.cpu().eval(), temperature), first, views.contiguous())     # (B, T, 4, S, S)
+    frames = rollout(Stepper(model.cpu().eval(), temperature, data.atlas), first, views.contiguous())     # (B, T, 4, S, S)
     return motion_energy(premultiply(frames.transpose(0, 1)).numpy())
 
 

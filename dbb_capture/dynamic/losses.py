@@ -16,8 +16,10 @@ from __future__ import annotations
 
 import torch
 
+from ..core.errors import DbbError
 from .config import LOSS_SCALES
 from .model import Rssm, States, sample
+from .networks import image_pyramid
 
 # The training open loop starts from the filtering state of frame 1, after the posterior has seen
 # frames 0 and 1. From frame 0 (the run-time start exactly) one frame cannot tell which way a swing
@@ -142,11 +144,16 @@ class _Batch:
     """A batch's frames as the decoder reads them: the context (frame 0's maps, pixels, view) and
     the views' encodings; :meth:`chain` decodes consecutive frames of every sequence."""
 
-    def __init__(self, model: Rssm, x: torch.Tensor, views: torch.Tensor):
+    def __init__(self, model: Rssm, x: torch.Tensor, views: torch.Tensor, anchor: torch.Tensor | None):
         self.model, self.x = model, x
         self.pe = model.encode_view(views)
         self.emb = model.encoder(x.flatten(0, 1)).view(x.shape[0], x.shape[1], -1)
         self.ctx = model.encoder.context(x[:, 0])
+        if model.cfg.anchor and anchor is None:
+            raise DbbError("this RSSM reads a view anchor: the batch must carry its renders")
+        self.anchor = anchor if model.cfg.anchor else None
+        self.ctx_anchor = (None if self.anchor is None else
+                           image_pyramid(self.anchor[:, 0], len(model.decoder.ups)))
         self.w = motion_weights(x, model.cfg.motion_weight) if model.cfg.motion_weight > 0 else None
 
     def identity(self) -> torch.Tensor:
@@ -159,7 +166,8 @@ class _Batch:
         cfg = self.model.cfg
         kp = self.emb[:, t0:t1, cfg.embed:].detach() if cfg.keypoint_teacher else None
         return self.model.decode_chain(h, z, self.pe[:, t0:t1], self.pe[:, t0 - 1], self.ctx, self.x[:, 0],
-                                       self.pe[:, 0], grid, kp)
+                                       self.pe[:, 0], grid, kp,
+                                       None if self.anchor is None else self.anchor[:, t0:t1], self.ctx_anchor)
 
     def rec(self, pred: torch.Tensor, t0: int, t1: int) -> torch.Tensor:
         """:func:`reconstruction` of ``pred`` (B * (t1 - t0), 4, S, S): frames t0..t1-1 of every sequence."""
@@ -169,17 +177,19 @@ class _Batch:
         return reconstruction(pred, x[:, t0:t1].flatten(0, 1), w)
 
 
-def loss_terms(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[dict[str, torch.Tensor], dict[str, float]]:
+def loss_terms(model: Rssm, x: torch.Tensor, views: torch.Tensor,
+               anchor: torch.Tensor | None = None) -> tuple[dict[str, torch.Tensor], dict[str, float]]:
     """The unscaled training terms of a batch of sequences (names of ``RssmConfig.loss_scales``; a term
     whose scale is 0 is left out) and the KL's parts.
 
     ``x``: premultiplied RGBA (B, T+1, 4, S, S) in [0, 1], frame 0 the context; ``views``: (B, T+1, 3)
-    [azimuth_deg, elevation_deg, distance_m]. Frames follow one another (each step's warp builds on
+    [azimuth_deg, elevation_deg, distance_m]; ``anchor`` (B, T+1, 4, S, S) premultiplied, the view
+    anchor's render at each frame's view (``cfg.anchor``). Frames follow one another (each step's warp builds on
     the last): the filtering frames 1..T are decoded in order from the identity warp (frame 0 is the
     context itself), the open loop goes on from the filtering warp of frame k, as its states do.
     """
     cfg = model.cfg
-    b = _Batch(model, x, views)
+    b = _Batch(model, x, views, anchor)
     T1 = x.shape[1]
     f = model.observe(b.emb, b.pe)
     kl, info = _kl_terms(model, f)
@@ -230,22 +240,24 @@ def weighted(terms: dict[str, torch.Tensor], scales: dict[str, float]) -> torch.
     return total
 
 
-def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[torch.Tensor, dict]:
+def sequence_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor,
+                  anchor: torch.Tensor | None = None) -> tuple[torch.Tensor, dict]:
     """Training loss of a batch of sequences (:func:`loss_terms`, weighted by ``loss_scales``) and its
     parts for the history: the terms (the KL as its two parts ``kl_dyn``, ``kl_rep``) and ``loss``."""
-    terms, info = loss_terms(model, x, views)
+    terms, info = loss_terms(model, x, views, anchor)
     loss = weighted(terms, model.cfg.loss_scales)
     parts = {"rec": terms["rec"].item(), **info,
              **{k: v.item() for k, v in terms.items() if k not in ("rec", "kl")}, "loss": loss.item()}
     return loss, parts
 
 
-def latent_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor) -> tuple[torch.Tensor, dict]:
+def latent_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor,
+                anchor: torch.Tensor | None = None) -> tuple[torch.Tensor, dict]:
     """The prior's share of :func:`sequence_loss` alone, with the encoder and posterior held fixed
     and nothing decoded (``TrainConfig.dynamics_steps``): the dynamics KL along the filtering
     states (as ``kl``, times ``kl_balance``), latent overshooting along the open loop and (with
-    ``loss_scales.keypoints``) the keypoints read from both. Same arguments as :func:`sequence_loss`;
-    a fraction of its cost."""
+    ``loss_scales.keypoints``) the keypoints read from both. Same arguments as :func:`sequence_loss`
+    (nothing is decoded, so ``anchor`` is not read); a fraction of its cost."""
     cfg = model.cfg
     B, T1 = x.shape[:2]
     pe = model.encode_view(views)

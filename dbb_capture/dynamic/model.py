@@ -137,17 +137,21 @@ class Rssm(LatentStep):
 
     def decode_chain(self, h: torch.Tensor, z: torch.Tensor, pe: torch.Tensor, prev_pe: torch.Tensor,
                      ctx: List[torch.Tensor], ctx_pm: torch.Tensor, ctx_pe: torch.Tensor,
-                     grid: torch.Tensor, kp: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                     grid: torch.Tensor, kp: torch.Tensor | None = None, anchor: torch.Tensor | None = None,
+                     ctx_anchor: List[torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Consecutive frames of each row, one step after another. ``h``, ``z`` (N, T, .), ``pe``
         (N, T, 4F) their views, ``prev_pe`` (N, 4F) the view of the frame before the first, ``grid``
         (N, S, S, 2) its warp; ``ctx``/``ctx_pm``/``ctx_pe`` the context frame's maps, pixels and view,
-        one row per row; ``kp`` (N, T, 2K) the keypoints to draw each frame from (None: the states').
+        one row per row; ``kp`` (N, T, 2K) the keypoints to draw each frame from (None: the states');
+        ``anchor`` (N, T, 4, S, S) the view anchor at each frame's view and ``ctx_anchor`` the context
+        view's pyramid (``cfg.anchor``, :meth:`dbb_capture.dynamic.networks.Decoder.anchor_maps`).
         Returns premultiplied RGBA (N, T, 4, S, S) and the last frame's warp."""
         out = []
         for t in range(h.shape[1]):
             feat = decoder_input(h[:, t], z[:, t], view_delta_encoding(pe[:, t], ctx_pe),
                                  view_delta_encoding(pe[:, t], prev_pe))
-            x, grid = self.decoder(feat, ctx, ctx_pm, grid, None if kp is None else kp[:, t])
+            x, grid = self.decoder(feat, ctx, ctx_pm, grid, None if kp is None else kp[:, t],
+                                   None if anchor is None else anchor[:, t], ctx_anchor)
             out.append(x)
             prev_pe = pe[:, t]
         return torch.stack(out, 1), grid

@@ -61,6 +61,15 @@ def warp_maps(maps: List[torch.Tensor], grid: torch.Tensor) -> List[torch.Tensor
     return out[::-1]
 
 
+def image_pyramid(x: torch.Tensor, levels: int) -> List[torch.Tensor]:
+    """``x`` (N, C, S, S) averaged down by 2 ``levels`` times, coarsest first: [S / 2^levels, ..., S / 2]."""
+    out: List[torch.Tensor] = []
+    for _ in range(levels):
+        x = F.avg_pool2d(x, 2)
+        out.insert(0, x)
+    return out
+
+
 def keypoint_maps(kp: torch.Tensor, r: int, std: float) -> torch.Tensor:
     """Keypoints (N, 2K) as :class:`SpatialSoftmax` gives them (K x, then K y, in [-1, 1]) ->
     Gaussian maps (N, K, r, r) at the pixel centres of an r x r grid, peak 1; the std is at
@@ -170,6 +179,11 @@ class Decoder(nn.Module):
     where the context frame cannot show the view. It starts as the context frame exactly (zero
     flow, ~95 % warp share). With ``keypoint_maps`` each layer also reads Gaussian maps of the
     keypoints that ``kp_net`` reads from the state (h, z), the first deter + stoch features.
+
+    With ``anchor`` each layer also reads the view anchor's renders (:mod:`dbb_capture.dynamic.anchor`)
+    at the drawn view and at the context frame's, averaged down to its size: how the object's mean
+    shape looks from here and how it moved since the context frame. The generated content is then
+    itself a blend of the network's colours and the anchor's render at the drawn view (its own share).
     """
 
     def __init__(self, cfg: RssmConfig):
@@ -188,9 +202,12 @@ class Decoder(nn.Module):
                                      nn.Linear(cfg.hidden, 2 * cfg.keypoints)) if cfg.keypoint_maps else None)
         if cfg.keypoint_maps:                    # the state's keypoints, and the context's in its maps
             enc = [c + 2 * cfg.keypoints for c in enc]
-        # Outputs: RGBA, the warp's share (a logit), then the step's flow x, y.
+        self.anchor = bool(cfg.anchor)
+        if self.anchor:                          # the anchor at the drawn view and at the context's
+            enc = [c + 8 for c in enc]
+        # Outputs: RGBA, the warp's share (a logit), the step's flow x, y, then the anchor's share.
         self.ups = nn.ModuleList([nn.ConvTranspose2d(c_in + c_skip, c_out, 4, 2, 1)
-                                  for c_in, c_skip, c_out in zip(ch, enc, ch[1:] + [7])])
+                                  for c_in, c_skip, c_out in zip(ch, enc, ch[1:] + [8 if self.anchor else 7])])
         # Pixel-centre sampling grid of grid_sample (align_corners=False), (1, S, S, 2) as (x, y).
         self.register_buffer("grid", identity_grid(1, cfg.size), persistent=False)
         with torch.no_grad():                    # start as the context frame, unwarped
@@ -199,6 +216,8 @@ class Decoder(nn.Module):
             last.bias[4:] = 0.0
             last.bias[4] = 3.0                   # ~95 % warp share
             last.weight[:, 5:7] = 0.0            # zero flow: the first steps are the context frame exactly
+            if self.anchor:
+                last.bias[7] = 0.0               # the generated half the anchor's render
 
     def state_keypoints(self, feat: torch.Tensor) -> torch.Tensor:
         """``keypoint_maps``: the keypoints (N, 2K) the state (feat's first deter + stoch) puts the parts at."""
@@ -206,14 +225,18 @@ class Decoder(nn.Module):
             return feat.new_zeros(feat.shape[0], 0)
         return self.kp_net(feat[:, :self.n_state])
 
-    def heads(self, feat: torch.Tensor, ctx: List[torch.Tensor], kp: torch.Tensor) -> torch.Tensor:
-        """The last layer's output (N, 7, S, S) before compositing: RGBA and warp-share logits, then the
-        flow's; ``ctx`` the context maps as the decoder sees them now, ``kp`` the keypoints to draw from."""
+    def heads(self, feat: torch.Tensor, ctx: List[torch.Tensor], kp: torch.Tensor,
+              anchors: List[torch.Tensor]) -> torch.Tensor:
+        """The last layer's output (N, 7 or 8, S, S) before compositing: RGBA and warp-share logits,
+        the flow's, the anchor share's; ``ctx`` the context maps as the decoder sees them now, ``kp``
+        the keypoints to draw from, ``anchors`` the anchor's maps at each layer (or none)."""
         x = F.silu(self.fc(feat).view(-1, self.c0, 4, 4))
         n = len(self.ups)
         i = 0
         for up in self.ups:
             x = torch.cat([x, ctx[i]], 1)
+            if self.anchor:
+                x = torch.cat([x, anchors[i]], 1)
             if self.kp_net is not None:
                 x = torch.cat([x, keypoint_maps(kp, x.shape[-1], self.map_std)], 1)
             x = up(x)
@@ -222,17 +245,32 @@ class Decoder(nn.Module):
             i += 1
         return x
 
+    def anchor_maps(self, anchor: torch.Tensor, ctx_anchor: List[torch.Tensor]) -> List[torch.Tensor]:
+        """The anchor's maps at each layer's input (4, 8, ..., S/2): its render at the drawn view
+        ``anchor`` (N, 4, S, S) averaged down, beside ``ctx_anchor`` (the same of the context frame's
+        view, :func:`image_pyramid` of it with as many levels as layers)."""
+        here = image_pyramid(anchor, len(self.ups))
+        return [torch.cat([a, c], 1) for a, c in zip(here, ctx_anchor)]
+
     def forward(self, feat: torch.Tensor, ctx: List[torch.Tensor], ctx_pm: torch.Tensor,
-                grid: torch.Tensor, kp: Optional[torch.Tensor] = None) -> tuple[torch.Tensor, torch.Tensor]:
+                grid: torch.Tensor, kp: Optional[torch.Tensor] = None, anchor: Optional[torch.Tensor] = None,
+                ctx_anchor: Optional[List[torch.Tensor]] = None) -> tuple[torch.Tensor, torch.Tensor]:
         """The next frame (N, 4, S, S) premultiplied and its warp (N, S, S, 2), from the current
         frame's warp ``grid`` (the identity grid before the first step), the context frame's maps
         ``ctx`` (:meth:`Encoder.context`, one row per frame) and pixels ``ctx_pm``; ``kp`` (N, 2K)
-        the keypoints to draw from (``keypoint_teacher`` in training), by default the state's."""
+        the keypoints to draw from (``keypoint_teacher`` in training), by default the state's.
+        With ``anchor``: its render at the drawn view (N, 4, S, S) premultiplied and ``ctx_anchor``
+        the context view's pyramid (:meth:`anchor_maps`)."""
         if kp is None:
             kp = self.state_keypoints(feat)
-        x = self.heads(feat, warp_maps(ctx, grid), kp)
+        anchors: List[torch.Tensor] = []
+        if anchor is not None and ctx_anchor is not None:
+            anchors = self.anchor_maps(anchor, ctx_anchor)
+        x = self.heads(feat, warp_maps(ctx, grid), kp, anchors)
         s = torch.sigmoid(x[:, :5])                               # RGBA and the warp's share
         gen = torch.cat([s[:, :3] * s[:, 3:4], s[:, 3:4]], 1)
+        if anchor is not None:
+            gen = torch.lerp(gen, anchor, torch.sigmoid(x[:, 7:8]))
         flow = torch.tanh(x[:, 5:7]) * self.max_step_flow
         grid = accumulated_warp(grid, flow, self.grid, self.warp_leak)
         warped = F.grid_sample(ctx_pm, grid, mode="bilinear", padding_mode="zeros", align_corners=False)

@@ -18,7 +18,7 @@ from ..core.outputs import read_json, write_json
 from .config import RssmConfig
 
 RUN_FORMAT = "dbb-rssm-run"
-RUN_VERSION = 2          # 2: loss_scales, presets as files, the rejected settings removed
+RUN_VERSION = 3          # 3: the view anchor (anchor/, model.pt "anchor", training.anchor_seconds)
 
 STEPPER_API = {"start": "(rgba (B,4,S,S) straight RGBA 0..1, view (B,3)) -> (h, z)",
                "step": "(h, z, view (B,3)) -> (h, z, rgba (B,4,S,S) straight RGBA 0..1)"}
@@ -51,7 +51,8 @@ class TrainingRecord:
     """``run.json: training``: how the run was trained."""
 
     steps: int
-    seconds: float                        # time in training steps, over all resumptions
+    seconds: float                        # time in training steps, over all resumptions (the anchor's included)
+    anchor_seconds: float                 # of which fitting the view anchor's PlenOctree
     last_wall_seconds: float      # wall clock of the last command, evaluation included
     budget_minutes: float | None
     budget_steps: int | None

@@ -24,13 +24,16 @@ from ..core.outputs import (
 )
 from ..core.progress import console, progress, resumed_line
 from .config import RssmConfig, TrainConfig, leak_at_frame_rate
-from .data import SequenceData, load_sequences
+from .anchor import ViewAtlas, build_atlas
+from .data import SequenceData, load_sequences, with_anchor
 from .evaluate import RUN_TEMPERATURE, EvalReport, calibrate_temperature, evaluate
 from .figures import write_figures
 from .model import Rssm
 from .record import RunRecord, StepperRecord, TrainingRecord
 from .stepper import Stepper, script_stepper
 from .train import TrainState, budget_fraction, read_checkpoint, train
+
+ANCHOR_DIR = "anchor"        # the view anchor's PlenOctree run folder, inside the run folder
 
 
 def resume_configs(out: Path) -> tuple[RssmConfig, TrainConfig]:
@@ -70,7 +73,14 @@ def train_run(dataset: Path, out: Path, cfg: RssmConfig, tcfg: TrainConfig, resu
     if state is None:
         state = TrainState.new(Rssm(leak_at_frame_rate(cfg, data.fps())).to(device), tcfg)
     work.mkdir(parents=True, exist_ok=True)
+    if not ckpt.is_file():              # resumable from here on, the anchor's fit included
+        state.save(ckpt)
     t0 = time.perf_counter()
+    anchor_seconds = 0.0
+    if cfg.anchor:
+        anchor_seconds = fit_anchor(dataset, work / ANCHOR_DIR, out / ANCHOR_DIR, tcfg, quiet)
+        data = with_anchor(data, build_atlas(work / ANCHOR_DIR / "tree.npz", data.views, data.meta, cfg.size, quiet))
+    rssm_tcfg = tcfg if tcfg.minutes is None else replace(tcfg, minutes=tcfg.minutes - anchor_seconds / 60)
     with progress(disable=quiet) as prog:
         task = prog.add_task("train rssm", total=100, info="")
 
@@ -79,25 +89,53 @@ def train_run(dataset: Path, out: Path, cfg: RssmConfig, tcfg: TrainConfig, resu
                 return
             info = ("non-finite step skipped" if parts is None else
                     f"step {st.step}  rec {parts['rec']:.1f}  kl {parts['kl_dyn']:.2f}  over {parts['overshoot']:.2f}")
-            prog.update(task, completed=100 * budget_fraction(st, tcfg), info=info)
+            prog.update(task, completed=100 * budget_fraction(st, rssm_tcfg), info=info)
 
-        state = train(state, data, tcfg, ckpt, on_step)
+        state = train(state, data, rssm_tcfg, ckpt, on_step)
         prog.update(task, completed=100)
-    record = write_run(out, state, data, dataset, tcfg, ckpt, wall=time.perf_counter() - t0, temperature=temperature)
+    record = write_run(out, state, data, dataset, tcfg, ckpt, wall=time.perf_counter() - t0, temperature=temperature,
+                       anchor=work / ANCHOR_DIR if cfg.anchor else None, anchor_seconds=anchor_seconds)
     shutil.rmtree(work, ignore_errors=True)
     return record
 
 
+def fit_anchor(dataset: Path, folder: Path, finished: Path, tcfg: TrainConfig, quiet: bool = False) -> float:
+    """Fit the view anchor, a PlenOctree of the dataset's crops (:mod:`dbb_capture.dynamic.anchor`),
+    into the PlenOctree run folder ``folder`` unless it is there (an interrupted fit resumes; a
+    resumed run takes its finished one from ``finished``); ``anchor_share`` of a minutes budget, as
+    many steps as the RSSM's with a steps budget. It trains on the RSSM's training frames only
+    (the test windows' frames are its held-out views). Returns its training seconds."""
+    from ..datasets.transforms import load_dataset
+    from ..static.run import RunConfig, load_run, train_run as train_tree
+    from ..core.outputs import run_work_dir as work_of
+
+    if not (folder / "tree.npz").is_file() and (finished / "tree.npz").is_file():
+        shutil.copytree(finished, folder, dirs_exist_ok=True)
+    if not (folder / "tree.npz").is_file():
+        if not quiet:
+            console.print("fitting the view anchor (a PlenOctree of the crops)", markup=False)
+        minutes = None if tcfg.minutes is None else tcfg.anchor_share * tcfg.minutes
+        test = tuple(f.name for f in load_dataset(Path(dataset)).frames if f.split == "test")
+        train_tree(Path(dataset), folder, RunConfig(minutes=minutes, steps=tcfg.steps, holdout_names=test),
+                   resume=(work_of(folder) / "checkpoint.pt").is_file(), overwrite=True, quiet=quiet)
+    return float(load_run(folder).record.training.seconds)
+
+
 def write_run(out: Path, state: TrainState, data: SequenceData, dataset: Path, tcfg: TrainConfig,
-              ckpt: Path, wall: float, temperature: float | None = None) -> RunRecord:
-    """The run folder of a trained state; ``temperature`` None: calibrated (run.json says how)."""
+              ckpt: Path, wall: float, temperature: float | None = None, anchor: Path | None = None,
+              anchor_seconds: float = 0.0) -> RunRecord:
+    """The run folder of a trained state; ``temperature`` None: calibrated (run.json says how);
+    ``anchor`` the view anchor's PlenOctree run folder (its tree, record and report are kept)."""
     model = state.run_model()           # checkpoint.pt keeps the last weights (to continue training)
     cal = calibrate_temperature(model, data) if temperature is None else None
     temperature = cal.temperature if cal is not None else float(temperature)
     with atomic_dir(out, overwrite=True) as tmp:
         shutil.copyfile(ckpt, tmp / "checkpoint.pt")
-        torch.save({"config": asdict(model.cfg), "state_dict": model.state_dict()}, tmp / "model.pt")
-        script_stepper(model, temperature).save(str(tmp / "stepper.ts"))
+        torch.save({"config": asdict(model.cfg), "state_dict": model.state_dict(),
+                    "anchor": None if data.atlas is None else data.atlas.state()}, tmp / "model.pt")
+        if anchor is not None:
+            shutil.copytree(anchor, tmp / ANCHOR_DIR, ignore=shutil.ignore_patterns("checkpoint.pt", ".*"))
+        script_stepper(model, temperature, data.atlas).save(str(tmp / "stepper.ts"))
         report = run_eval(model, data, tmp / "report", state.history, temperature=temperature)
         record = RunRecord(
             dataset=str(Path(dataset).resolve()), dataset_file=data.source.name,
@@ -105,7 +143,8 @@ def write_run(out: Path, state: TrainState, data: SequenceData, dataset: Path, t
             crop={"size": data.meta.get("crop_size"), "fill": data.meta.get("crop_fill")}, config=model.cfg,
             stepper=StepperRecord(model.cfg.size, data.fps(), temperature, None if cal is None else cal.to_json()),
             training=TrainingRecord(
-                steps=state.step, seconds=round(state.seconds, 1), last_wall_seconds=round(wall, 1),
+                steps=state.step, seconds=round(state.seconds + anchor_seconds, 1),
+                anchor_seconds=round(anchor_seconds, 1), last_wall_seconds=round(wall, 1),
                 budget_minutes=tcfg.minutes, budget_steps=tcfg.steps, batch=tcfg.batch, lr=tcfg.lr,
                 weights="moving average" if state.ema is not None else "last",
                 non_finite_steps_skipped=state.bad_steps, train_sequences=len(data.starts("train")),
@@ -119,7 +158,7 @@ def run_eval(model: Rssm, data: SequenceData, folder: Path, history: list[dict],
              temperature: float = RUN_TEMPERATURE, **kw) -> EvalReport:
     """Evaluate ``model`` (sampling at ``temperature``) on ``data``; ``eval.json`` and figures into
     ``folder``; ``kw`` as :func:`dbb_capture.dynamic.evaluate.evaluate`'s."""
-    report, figs = evaluate(Stepper(model.cpu().eval(), temperature), data, **kw)
+    report, figs = evaluate(Stepper(model.cpu().eval(), temperature, data.atlas), data, **kw)
     folder.mkdir(parents=True, exist_ok=True)
     write_json(folder / "eval.json", report.to_json())
     write_figures(report, figs, history, folder)
@@ -128,14 +167,34 @@ def run_eval(model: Rssm, data: SequenceData, folder: Path, history: list[dict],
 
 def load_model(run: Path) -> Rssm:
     """The trained model of a run folder (``model.pt``), in eval mode."""
+    return _read_model(run)[0]
+
+
+def load_atlas(run: Path) -> ViewAtlas | None:
+    """The view anchor's atlas of a run folder (``model.pt``), None for a model without one."""
+    return _read_model(run)[1]
+
+
+def load_run_data(run: Path, dataset: Path | None = None) -> tuple[Rssm, SequenceData]:
+    """A run's model and a dataset (default: the run's own) at its frame size, with the run's view anchor."""
+    record = RunRecord.read(run)
+    model, atlas = _read_model(run)
+    data = load_sequences(Path(dataset) if dataset is not None else Path(record.dataset), model.cfg.size)
+    return model, with_anchor(data, atlas)
+
+
+def _read_model(run: Path) -> tuple[Rssm, ViewAtlas | None]:
     record = RunRecord.read(run)
     try:
         ck = torch.load(Path(run) / record.model_file, map_location="cpu", weights_only=False)
         model = Rssm(RssmConfig.from_json(ck["config"]))
         model.load_state_dict(ck["state_dict"])
-    except (OSError, KeyError, RuntimeError) as e:
+        atlas = None if ck.get("anchor") is None else ViewAtlas.from_state(ck["anchor"])
+    except (OSError, KeyError, RuntimeError, TypeError, ValueError) as e:
         raise DbbError(f"cannot read the RSSM model of {run}: {e}") from None
-    return model.eval()
+    if model.cfg.anchor and atlas is None:
+        raise DbbError(f"cannot read the RSSM model of {run}: its view anchor's atlas is missing from model.pt")
+    return model.eval(), atlas
 
 
 def eval_run(run: Path, dataset: Path | None = None, temperature: float | None = None,
@@ -149,8 +208,7 @@ def eval_run(run: Path, dataset: Path | None = None, temperature: float | None =
     """
     run = Path(run)
     record = RunRecord.read(run)
-    model = load_model(run)
-    data = load_sequences(Path(dataset) if dataset is not None else Path(record.dataset), model.cfg.size)
+    model, data = load_run_data(run, dataset)
     ck = run / record.checkpoint
     history = read_checkpoint(ck).history if ck.is_file() else []
     stepper = record.stepper
@@ -165,7 +223,7 @@ def eval_run(run: Path, dataset: Path | None = None, temperature: float | None =
         report = run_eval(model, data, tmp, history, temperature=temperature)
     if temperature != stepper.temperature:
         ts = run / f".{stepper.file}.partial"
-        script_stepper(model, temperature).save(str(ts))
+        script_stepper(model, temperature, data.atlas).save(str(ts))
         ts.replace(run / stepper.file)
         stepper.temperature = temperature
     record.eval = report.to_json()

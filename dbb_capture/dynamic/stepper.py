@@ -1,18 +1,21 @@
 """The run-time stepper: the trained model one frame at a time, TorchScript-exportable (``stepper.ts``).
 
 Frames in and out are straight RGBA (B, 4, S, S) in [0, 1]; views (B, 3) [azimuth_deg,
-elevation_deg, distance_m] (crops.json ``viewpoint``). The stochastic state is sampled, not
+elevation_deg, distance_m] (crops.json ``viewpoint``). A model with a view anchor carries its
+atlas (:class:`dbb_capture.dynamic.anchor.ViewAtlas`) inside, so ``stepper.ts`` needs nothing else. The stochastic state is sampled, not
 replaced by its mean (the mean settles within ~30 steps).
 """
 
 from __future__ import annotations
 
-from typing import List
+from typing import List, Optional
 
 import torch
 
+from ..core.errors import DbbError
+from .anchor import ViewAtlas, no_atlas
 from .model import LatentStep, Rssm, decoder_input, sample
-from .networks import fast_decoder
+from .networks import fast_decoder, image_pyramid
 from .rgba import premultiply, straight
 
 
@@ -30,8 +33,14 @@ class Stepper(LatentStep):
     forecasting, and the frame of any state.
     """
 
-    def __init__(self, model: Rssm, temperature: float = 1.0):
+    def __init__(self, model: Rssm, temperature: float = 1.0, atlas: ViewAtlas | None = None):
         super().__init__()
+        if model.cfg.anchor and atlas is None:
+            raise DbbError("this RSSM reads a view anchor: the stepper needs its atlas (the run's model.pt)")
+        self.use_anchor = bool(model.cfg.anchor)
+        self.atlas = atlas if self.use_anchor else no_atlas(model.cfg.size)
+        self.levels = len(model.decoder.ups)
+        self.ctx_anchor = []                # the context view's anchor pyramid, set by start()
         self.encoder = model.encoder
         self.decoder = fast_decoder(model.decoder)
         self.z_in = model.z_in
@@ -56,6 +65,8 @@ class Stepper(LatentStep):
         self.ctx_pm = pm
         self.ctx_view = view
         self.prev_view = view
+        if self.use_anchor:
+            self.ctx_anchor = image_pyramid(self.atlas(view), self.levels)
         self.warp = self.decoder.grid.expand(rgba.shape[0], -1, -1, -1).to(rgba.dtype)
         h = torch.zeros(rgba.shape[0], self.deter, dtype=rgba.dtype, device=rgba.device)
         mean, std = self.post_stats(h, emb, self.encode_view(view))
@@ -66,7 +77,12 @@ class Stepper(LatentStep):
         The view's changes are encoded from the angles' differences (one encoding for both)."""
         n = view.shape[0]
         d = self.encode_view(torch.cat([view - self.ctx_view, view - self.prev_view]))
-        pm, self.warp = self.decoder(decoder_input(h, z, d[:n], d[n:]), self.ctx, self.ctx_pm, self.warp)
+        anchor: Optional[torch.Tensor] = None
+        ctx_anchor: Optional[List[torch.Tensor]] = None
+        if self.use_anchor:
+            anchor, ctx_anchor = self.atlas(view), self.ctx_anchor
+        pm, self.warp = self.decoder(decoder_input(h, z, d[:n], d[n:]), self.ctx, self.ctx_pm, self.warp,
+                                     None, anchor, ctx_anchor)
         self.prev_view = view
         return straight(pm)
 
@@ -94,10 +110,11 @@ class Stepper(LatentStep):
         return self.step(h, z, view)
 
 
-def script_stepper(model: Rssm, temperature: float = 1.0) -> torch.jit.ScriptModule:
-    """The TorchScript stepper of ``model`` (on CPU, eval mode)."""
-    st = Stepper(model, temperature).cpu().eval()
+def script_stepper(model: Rssm, temperature: float = 1.0, atlas: ViewAtlas | None = None) -> torch.jit.ScriptModule:
+    """The TorchScript stepper of ``model`` with its view anchor ``atlas`` (on CPU, eval mode)."""
+    st = Stepper(model, temperature, atlas).cpu().eval()
     st.ctx = torch.jit.Attribute([], List[torch.Tensor])     # TorchScript cannot type an empty list
+    st.ctx_anchor = torch.jit.Attribute([], List[torch.Tensor])
     return torch.jit.script(st)
 
 

@@ -16,13 +16,13 @@ from ..core import checkpoint
 from ..core.errors import DbbError, InputError
 from ..core.fields import number, shown, type_name
 from .config import RssmConfig, TrainConfig
-from .data import SequenceData, augment, batch, training_windows
+from .data import SequenceData, anchor_batch, augment, batch, training_windows
 from .losses import latent_loss, sequence_loss
 from .model import Rssm
 
 CHECKPOINT_FORMAT = "dbb-rssm-checkpoint"
 CHECKPOINT_STEPS = 500      # a checkpoint at least this often, besides every checkpoint_seconds and on a stop
-CHECKPOINT_VERSION = 2
+CHECKPOINT_VERSION = 3
 
 
 def optimizer(model: Rssm, tcfg: TrainConfig) -> torch.optim.Optimizer:
@@ -232,10 +232,12 @@ class _Windows:
         self.full = data.starts("train"), data.length
         self.latent = training_windows(data, tcfg.dynamics_horizon) if tcfg.dynamics_steps else self.full
 
-    def draw(self, pool: tuple[np.ndarray, int]) -> tuple[torch.Tensor, torch.Tensor]:
+    def draw(self, pool: tuple[np.ndarray, int]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """Frames, views and (with a view anchor) its renders of a batch of windows, augmented."""
         starts, length = pool
         pick = starts[self.rng.integers(0, len(starts), self.tcfg.batch)]
-        return augment(*batch(self.data, pick, self.device, length), self.tcfg.augment, self.rng)
+        return augment(*batch(self.data, pick, self.device, length), self.tcfg.augment, self.rng,
+                       anchor_batch(self.data, pick, self.device, length))
 
 
 def _apply(state: TrainState, loss: torch.Tensor, grad_clip: float) -> bool:

@@ -7,6 +7,7 @@ from dataclasses import replace
 import pytest
 import torch
 
+from dbb_capture.dynamic.anchor import AtlasGrid, ViewAtlas
 from dbb_capture.dynamic.config import RssmConfig
 from dbb_capture.dynamic.data import load_sequences
 from dbb_capture.dynamic.model import Rssm
@@ -15,8 +16,18 @@ from dbb_capture.synth.crops import synthetic_crops
 # One thread: the CI machine has 2 cores and other tests run beside these.
 torch.set_num_threads(1)
 
-# The defaults at 32 px with small networks.
-SMALL = replace(RssmConfig(), size=32, deter=16, stoch=16, hidden=64, embed=64, enc_depth=8, dec_depth=8)
+# The defaults at 32 px with small networks, without the view anchor (ANCHORED has it; its tests
+# give it an atlas, :func:`random_atlas`).
+SMALL = replace(RssmConfig(), size=32, deter=16, stoch=16, hidden=64, embed=64, enc_depth=8, dec_depth=8,
+                anchor=False)
+ANCHORED = replace(SMALL, anchor=True)
+
+
+def random_atlas(size: int = 32, seed: int = 0) -> ViewAtlas:
+    """A view atlas of random renders on a 30-degree grid from 0 to 60 degrees elevation."""
+    g = torch.Generator().manual_seed(seed)
+    return ViewAtlas(torch.randint(0, 256, (3, 12, 4, size, size), generator=g, dtype=torch.uint8),
+                     AtlasGrid(30.0, 12, 0.0, 3, 0.7))
 
 
 def scaled(cfg: RssmConfig = SMALL, **scales: float) -> RssmConfig:

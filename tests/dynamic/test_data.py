@@ -70,16 +70,16 @@ def test_long_windows_are_runs_of_consecutive_training_frames(data):
 def test_augment_mirrors_and_reverses_whole_windows():
     torch.manual_seed(0)
     x, v = torch.rand(64, 5, 4, 8, 8), torch.rand(64, 5, 3) * 50
-    y, w = augment(x, v, "flip", np.random.default_rng(0))
+    y, w, _ = augment(x, v, "flip", np.random.default_rng(0))
     flipped = (w[:, 0, 0] != v[:, 0, 0])
     assert 10 < int(flipped.sum()) < 54                     # about half the windows
     assert torch.equal(y[flipped], x[flipped].flip(-1)) and torch.equal(w[flipped, :, 0], -v[flipped, :, 0])
     assert torch.equal(y[~flipped], x[~flipped]) and torch.equal(w[:, :, 1:], v[:, :, 1:])
-    y, w = augment(x, v, "reverse", np.random.default_rng(1))
+    y, w, _ = augment(x, v, "reverse", np.random.default_rng(1))
     rev = ~(y == x).flatten(1).all(1)
     assert 10 < int(rev.sum()) < 54
     assert torch.equal(y[rev], x[rev].flip(1)) and torch.equal(w[rev], v[rev].flip(1))
-    y, w = augment(x, v, "none", np.random.default_rng(2))
+    y, w, _ = augment(x, v, "none", np.random.default_rng(2))
     assert torch.equal(y, x) and torch.equal(w, v)
 
 
@@ -91,6 +91,6 @@ def test_shift_moves_every_frame_of_a_window_alike():
     assert torch.equal(y[1], x[1])
     x = torch.zeros(16, 3, 4, 32, 32)
     x[..., 8:24, 8:24] = torch.rand(16, 3, 4, 16, 16)     # content clear of the edges (max shift 2 px)
-    y, w = augment(x, torch.rand(16, 3, 3), "shift", np.random.default_rng(0))
+    y, w, _ = augment(x, torch.rand(16, 3, 3), "shift", np.random.default_rng(0))
     assert torch.allclose(y.sum((2, 3, 4)), x.sum((2, 3, 4)))          # moved whole, nothing lost
     assert int((y != x).flatten(1).any(1).sum()) >= 12         # (0, 0) is 1 offset of 25

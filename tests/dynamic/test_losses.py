@@ -62,9 +62,9 @@ def test_the_open_loop_is_decoded_only_when_a_term_scores_it(monkeypatch):
         calls = []
         real = m.decode_chain
 
-        def spy(h, z, pe, prev_pe, ctx, ctx_pm, ctx_pe, grid, kp=None):
+        def spy(h, z, pe, prev_pe, ctx, ctx_pm, ctx_pe, grid, *rest):
             calls.append((h.shape[0], h.shape[1], grid.clone()))
-            return real(h, z, pe, prev_pe, ctx, ctx_pm, ctx_pe, grid, kp)
+            return real(h, z, pe, prev_pe, ctx, ctx_pm, ctx_pe, grid, *rest)
 
         monkeypatch.setattr(m, "decode_chain", spy)
         loss, _ = sequence_loss(m, x, v)

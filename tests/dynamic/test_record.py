@@ -21,7 +21,7 @@ from .conftest import scaled
 def _record() -> RunRecord:
     return RunRecord("/data/ds", "crops.json", {"center": [0.0, 0.1, 0.2], "radius": 0.1}, [0.0, 0.0, -1.0],
                      {"size": 64, "fill": 0.9}, scaled(energy=2.0), StepperRecord(32, 10.0, 0.5, None),
-                     TrainingRecord(3, 1.5, 2.0, None, 3, 2, 1e-3, "moving average", 0, 12, 0, {"step": 3}),
+                     TrainingRecord(3, 1.5, 0.5, 2.0, None, 3, 2, 1e-3, "moving average", 0, 12, 0, {"step": 3}),
                      {"split": "train"})
 
 

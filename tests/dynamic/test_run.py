@@ -35,6 +35,10 @@ def test_run_folder_cli_resume_and_eval(crops, tmp_path):
         assert (out / f).is_file(), f
     rec = RunRecord.read(out)
     assert rec.training.steps == 3 and rec.config.size == 32 and rec.training.weights == "moving average"
+    # The view anchor by default: its PlenOctree run beside the model, its atlas in model.pt.
+    assert rec.config.anchor and (out / "anchor" / "tree.npz").is_file() and (out / "anchor" / "run.json").is_file()
+    assert 0 < rec.training.anchor_seconds < rec.training.seconds
+    assert torch.load(out / "model.pt", weights_only=False)["anchor"]["images"].shape[2:] == (4, 32, 32)
     cal = rec.stepper.temperature_calibration       # fitted to the footage by default
     assert cal["steps"] >= 10 and cal["temperature"] == rec.stepper.temperature
     assert rec.eval["split"] == "train" and len(rec.eval["psnr_db"]["model"]) == 10
@@ -48,6 +52,7 @@ def test_run_folder_cli_resume_and_eval(crops, tmp_path):
     rec2 = train_run(crops.root, out, SMALL, TrainConfig(steps=5, batch=2), resume=True, quiet=True)
     assert rec2.training.steps == 5 and rec2.training.final["step"] == 5
     assert rec2.config == rec.config                     # resumed, not restarted with SMALL's sizes
+    assert rec2.training.anchor_seconds == rec.training.anchor_seconds     # the anchor is not fitted again
     ts = torch.jit.load(str(out / "stepper.ts"))
     h, z = ts.start(torch.rand(1, 4, 32, 32), torch.zeros(1, 3))
     assert ts.step(h, z, torch.zeros(1, 3))[2].shape == (1, 4, 32, 32)

@@ -6,21 +6,24 @@ from dataclasses import replace
 
 import torch
 
+import pytest
+
+from dbb_capture.core.errors import DbbError
 from dbb_capture.dynamic.model import Rssm
 from dbb_capture.dynamic.networks import PhaseUp
 from dbb_capture.dynamic.stepper import Stepper, rollout, script_stepper
 
-from .conftest import SMALL, moving_model, scaled
+from .conftest import ANCHORED, SMALL, moving_model, random_atlas, scaled
 
 
-def _eager_and_scripted(m: Rssm, tmp_path, batch: int = 2, steps: int = 6) -> tuple[torch.Tensor, torch.Tensor]:
-    """Rollouts of ``m`` from the same random frame and views, with the same noise, through the
-    eager stepper and through its saved and reloaded TorchScript."""
+def _eager_and_scripted(m: Rssm, tmp_path, batch: int = 2, steps: int = 6, atlas=None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rollouts of ``m`` (with its view anchor's ``atlas``) from the same random frame and views, with
+    the same noise, through the eager stepper and through its saved and reloaded TorchScript."""
     path = tmp_path / "stepper.ts"
-    script_stepper(m).save(str(path))
+    script_stepper(m, atlas=atlas).save(str(path))
     first, views = torch.rand(batch, 4, 32, 32), torch.rand(batch, steps, 3) * 300 - 150
     torch.manual_seed(7)
-    eager = rollout(Stepper(m), first, views)
+    eager = rollout(Stepper(m, atlas=atlas), first, views)
     torch.manual_seed(7)
     return eager, rollout(torch.jit.load(str(path)), first, views)
 
@@ -42,6 +45,18 @@ def test_torchscript_matches_eager(tmp_path):
         assert eager.shape == (2, 5, 4, 32, 32) and torch.allclose(eager, scripted, atol=1e-5)
     assert float((eager[:, -1] - eager[:, 0]).abs().max()) > 0.05     # the frames do move
     assert torch.jit.load(str(tmp_path / "stepper.ts")).temperature == 1.0
+
+
+def test_an_anchored_stepper_carries_its_atlas_and_draws_from_it(tmp_path):
+    m = moving_model(cfg=ANCHORED)
+    with pytest.raises(DbbError, match="needs its atlas"):
+        Stepper(m)
+    atlas = random_atlas()
+    eager, scripted = _eager_and_scripted(m, tmp_path, atlas=atlas)
+    assert torch.allclose(eager, scripted, atol=1e-5)
+    # The stepper.ts alone: another atlas changes the frames, so the one inside is the one drawn from.
+    other, _ = _eager_and_scripted(m, tmp_path / "..", atlas=random_atlas(seed=1))
+    assert float((other - eager).abs().max()) > 0.05
 
 
 def test_the_transition_does_not_depend_on_the_viewpoint():

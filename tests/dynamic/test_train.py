@@ -20,9 +20,9 @@ def test_nan_guard_skips_bad_steps_and_gives_up_when_diverged(data, monkeypatch)
     real = training.sequence_loss
     calls = {"n": 0}
 
-    def flaky(model, x, v):
+    def flaky(model, x, v, a=None):
         calls["n"] += 1
-        loss, parts = real(model, x, v)
+        loss, parts = real(model, x, v, a)
         return (loss * float("nan"), parts) if calls["n"] <= 3 else (loss, parts)
 
     monkeypatch.setattr(training, "sequence_loss", flaky)
@@ -31,7 +31,7 @@ def test_nan_guard_skips_bad_steps_and_gives_up_when_diverged(data, monkeypatch)
     st = train(TrainState.new(m, tc), data, tc)
     assert st.bad_steps == 3 and st.step == 5
     assert all(torch.isfinite(p).all() for p in m.parameters())
-    monkeypatch.setattr(training, "sequence_loss", lambda model, x, v: (real(model, x, v)[0] * float("nan"), {}))
+    monkeypatch.setattr(training, "sequence_loss", lambda model, x, v, a=None: (real(model, x, v, a)[0] * float("nan"), {}))
     with pytest.raises(DbbError, match="diverged"):
         train(TrainState.new(m, tc), data, replace(tc, steps=10))
 
@@ -106,8 +106,8 @@ def test_dynamics_steps_train_the_transition_and_prior_alone_on_their_own_window
         assert torch.equal(w, runs[3][name]) == (name.split(".")[0] not in ("z_in", "gru", "prior")), name
     seen = {"full": [], "latent": []}
     full, latent = training.sequence_loss, training.latent_loss
-    monkeypatch.setattr(training, "sequence_loss", lambda m, x, v: seen["full"].append(x.shape[1]) or full(m, x, v))
-    monkeypatch.setattr(training, "latent_loss", lambda m, x, v: seen["latent"].append(x.shape[1]) or latent(m, x, v))
+    monkeypatch.setattr(training, "sequence_loss", lambda m, x, v, a=None: seen["full"].append(x.shape[1]) or full(m, x, v, a))
+    monkeypatch.setattr(training, "latent_loss", lambda m, x, v, a=None: seen["latent"].append(x.shape[1]) or latent(m, x, v, a))
     long_len = training.training_windows(data, 12)[1]
     tc = TrainConfig(steps=2, batch=2, dynamics_steps=2, dynamics_horizon=12, ema=0.0)
     train(TrainState.new(Rssm(SMALL), tc), data, tc)
