@@ -69,11 +69,16 @@ def train_run(dataset: Path, out: Path, cfg: RssmConfig, tcfg: TrainConfig, resu
     cfg.validate()
     tcfg.validate()
     data = load_sequences(dataset, cfg.size)
+    if state is None and cfg.anchor and data.fixed_camera():
+        cfg = replace(cfg, anchor=False)        # one view: nothing for a 3D model of it to carry
+        if not quiet:
+            console.print("a fixed camera: no view anchor (every frame is seen from the same view)", markup=False)
     torch.manual_seed(tcfg.seed)
     if state is None:
         state = TrainState.new(Rssm(leak_at_frame_rate(cfg, data.fps())).to(device), tcfg)
     work.mkdir(parents=True, exist_ok=True)
     if not ckpt.is_file():              # resumable from here on, the anchor's fit included
+        state.train_config = asdict(tcfg)
         state.save(ckpt)
     t0 = time.perf_counter()
     anchor_seconds = 0.0

@@ -167,5 +167,5 @@ def test_rssm_stopped_then_resumed(tmp_path):
 
     synthetic_crops(tmp_path / "ds", seconds=3.0, fps=10, size=32, still_steps=1, samples=1)
     args = ("dbb-train", "rssm", "ds", "-o", "run", "--minutes", "5", "--size", "32", "--batch", "2",
-            "--threads", "1", "--set", "deter=16", "--set", "stoch=16", "--set", "hidden=64", "--set", "embed=64")
+            "--threads", "1", "--set", "anchor_share=0.05", "--set", "deter=16", "--set", "stoch=16", "--set", "hidden=64", "--set", "embed=64")
     _trainer_stopped_and_resumed(tmp_path, args, r"train rssm: .*step ([2-9]|\d\d)", ("--steps", "20"))
