@@ -163,8 +163,8 @@ def tree_renders(renderer, dataset: Path, views: np.ndarray) -> np.ndarray:
 
 
 def new_path(run: Path, dataset: Path, capture: Path, shift: float = 0.5, windows: int = 32, seed: int = 0,
-             anchor: Path | None = None) -> dict:
-    """Rollouts from the run's stepper (its run-time temperature) on four sets of windows at the
+             anchor: Path | None = None, temperature: float | None = None) -> dict:
+    """Rollouts from the run's stepper (``temperature``, by default its run-time one) on four sets of windows at the
     test windows' times: ``own_crops`` (the test windows as preprocess cut them), ``own_path_truth``
     (the same viewpoints rendered from the truth), ``new_path_truth`` (the viewpoints of the
     stretch ``shift`` of the capture later, wrapped, rendered from the truth at the same times) and
@@ -178,7 +178,8 @@ def new_path(run: Path, dataset: Path, capture: Path, shift: float = 0.5, window
 
     tree = None if anchor is None else TreeRenderer(PlenOctree.load(Path(anchor) / "tree.npz"))
     model, data = run_data(run, dataset)
-    temperature = RunRecord.read(run).stepper.temperature
+    if temperature is None:
+        temperature = RunRecord.read(run).stepper.temperature
     stepper = Stepper(model, temperature, data.atlas)
     starts = data.starts("test")
     if len(starts) > windows:
@@ -606,6 +607,7 @@ def main() -> None:
     n.add_argument("--windows", type=int, default=32)
     n.add_argument("--anchor", type=Path, default=None,
                    help="a dbb-train plenoctree run on the same dataset: its renders scored too, as 'anchor'")
+    n.add_argument("--temperature", type=float, default=None, help="sampling temperature (default: the run's)")
     b = sub.add_parser("blurred-copy", help="the score of copy-first blurred more at each step (a hedge)")
     b.add_argument("dataset", type=Path)
     b.add_argument("--sigma", type=float, action="append", default=[], help="pixels at step 1 (repeatable)")
@@ -631,7 +633,7 @@ def main() -> None:
         out = motion(a.run, a.dataset, still, a.temperature or [0.0, 1.0, 2.0], a.samples,
                      model=with_settings(load_model(a.run), a.set))
     elif a.cmd == "new-path":
-        out = new_path(a.run, a.dataset, a.capture, a.shift, a.windows, anchor=a.anchor)
+        out = new_path(a.run, a.dataset, a.capture, a.shift, a.windows, anchor=a.anchor, temperature=a.temperature)
     elif a.cmd == "blurred-copy":
         out = [blurred_copy(a.dataset, s) for s in (a.sigma or [0.5])]
     elif a.cmd == "speed":

@@ -60,16 +60,20 @@ class AtlasGrid:
 def atlas_grid(views: np.ndarray, size: int, max_bytes: int = ATLAS_MAX_BYTES) -> AtlasGrid:
     """The grid for footage seen from ``views`` (N, 3) at frames of ``size`` px: 5 deg steps, coarser
     (10, 15, ...) while the atlas (uint8 RGBA) would pass ``max_bytes``; elevations spanning the
-    footage's and :data:`ELEVATION_MARGIN_DEG` beyond, within +-:data:`ELEVATION_LIMIT_DEG`."""
+    footage's and :data:`ELEVATION_MARGIN_DEG` beyond (the top row at the top of that span), every
+    row within +-:data:`ELEVATION_LIMIT_DEG` (a crop camera straight above the object has no up)."""
     lo = max(float(views[:, 1].min()) - ELEVATION_MARGIN_DEG, -ELEVATION_LIMIT_DEG)
     hi = min(float(views[:, 1].max()) + ELEVATION_MARGIN_DEG, ELEVATION_LIMIT_DEG)
     step = 5.0
     while True:
-        n_az, n_el = int(round(360.0 / step)), int(math.floor((hi - lo) / step)) + 2
+        n_az, n_el = int(round(360.0 / step)), int(math.ceil((hi - lo) / step - 1e-9)) + 1
         if n_az * n_el * 4 * size * size <= max_bytes or step >= 45.0:
             break
         step += 5.0
-    return AtlasGrid(step, n_az, lo, n_el, float(np.median(views[:, 2])))
+    el0 = hi - (n_el - 1) * step            # at or up to one step below lo
+    if el0 < -ELEVATION_LIMIT_DEG:          # both ends at the limits: a row fewer, the top short of hi
+        el0, n_el = -ELEVATION_LIMIT_DEG, n_el - 1
+    return AtlasGrid(step, n_az, el0, n_el, float(np.median(views[:, 2])))
 
 
 def render_atlas(tree: PlenOctree, grid: AtlasGrid, center: np.ndarray, radius: float, up: np.ndarray,

@@ -248,10 +248,13 @@ class Calibration:
 
 @torch.no_grad()
 def still_view_target(model: Rssm, data: SequenceData, starts: np.ndarray, length: int) -> float:
-    """Energy per step of the footage's own motion as the model sees it: the posterior follows
+    """Energy per step of the footage's own motion at a still viewpoint: the posterior follows
     the real frames (:meth:`Stepper.observe`, its mean), and each state is decoded from the
     first frame's viewpoint, held still. The transition takes no viewpoint, so what changes
-    is the object; the decoder's blur is in it, as in the open loop it is compared with.
+    is the object. The decoder draws the states smoother than the footage moves, so that energy
+    is scaled by how much of the real frames' change the same states, decoded at the frames'
+    own viewpoints, keep (0.6-0.7 on synthetic captures, whose truth at a still view the scaled
+    target meets within 7 %; docs/decisions.md, "still-view target").
     A fixed camera's footage is itself seen from a still viewpoint: its own change is the
     target there (frames 1 to L-1, as the open loop's)."""
     idx = starts[:, None] + np.arange(length)[None]
@@ -261,11 +264,15 @@ def still_view_target(model: Rssm, data: SequenceData, starts: np.ndarray, lengt
     st = Stepper(model.cpu().eval(), 0.0, data.atlas)
     v = torch.from_numpy(data.views[idx])
     h, z = st.start(x[:, 0], v[:, 0])
-    frames = []
+    still, seen = [], []
     for t in range(1, length):
         h, z = st.observe(h, z, x[:, t], v[:, t])
-        frames.append(st.decode(h, z, v[:, 0]))
-    return motion_energy(premultiply(torch.stack(frames)).numpy())
+        still.append(st.decode(h, z, v[:, 0]))
+        seen.append(st.decode(h, z, v[:, t]))
+    real = motion_energy(premultiply(x[:, 1:].transpose(0, 1)).numpy())
+    kept = motion_energy(premultiply(torch.stack(seen)).numpy())
+    scale = float(np.clip(real / kept, 0.25, 4.0)) if kept > 1e-9 else 1.0
+    return scale * motion_energy(premultiply(torch.stack(still)).numpy())
 
 
 @torch.no_grad()
@@ -283,7 +290,7 @@ def still_view_energy(model: Rssm, data: SequenceData, starts: np.ndarray, lengt
 def calibrate_temperature(model: Rssm, data: SequenceData, steps: int = 150, count: int = 4, samples: int = 2,
                           temperatures: tuple[float, ...] = CALIBRATION_TEMPERATURES, seed: int = 0) -> Calibration:
     """The sampling temperature at which the open loop, at a still viewpoint, moves as much as
-    the footage's own motion as the model sees it (:func:`still_view_target`).
+    the footage's own motion at a still viewpoint (:func:`still_view_target`).
 
     The stochastic state carries the object's motion that the deterministic path does not: at
     temperature 0 the rollouts settle, and their energy grows with the temperature. How much

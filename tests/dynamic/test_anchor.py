@@ -6,7 +6,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from dbb_capture.crops.camera import facing_camera
 from dbb_capture.dynamic.anchor import AtlasGrid, ViewAtlas, atlas_grid, render_atlas
+from dbb_capture.geometry.viewpoint import Viewpoint, eye_at
 from dbb_capture.octree.tree import PlenOctree, build_tree
 
 
@@ -37,11 +39,19 @@ def test_grid_spans_the_footage_and_coarsens_to_stay_small():
     views = np.array([[0.0, 10.0, 0.6], [90.0, 40.0, 0.8], [200.0, 25.0, 0.7]])
     g = atlas_grid(views, 64)
     assert g.step_deg == 5.0 and g.n_az == 72 and g.el0_deg == 0.0
-    assert g.el0_deg + (g.n_el - 1) * g.step_deg >= 50.0 and g.distance_m == 0.7
+    assert g.el0_deg + (g.n_el - 1) * g.step_deg == 50.0 and g.distance_m == 0.7
     big = atlas_grid(views, 256, max_bytes=8 * 2 ** 20)
     assert big.step_deg > 5.0 and big.n_az * big.n_el * 4 * 256 * 256 <= 8 * 2 ** 20
     steep = atlas_grid(np.array([[0.0, 80.0, 0.5], [0.0, -80.0, 0.5]]), 32)
-    assert steep.el0_deg == -85.0 and steep.el0_deg + (steep.n_el - 2) * steep.step_deg <= 85.0
+    assert steep.el0_deg == -85.0 and steep.el0_deg + (steep.n_el - 1) * steep.step_deg <= 85.0
+    # Footage up to 74 deg (a capture from above): the top row at 84, none past the limit, and
+    # every row's crop camera exists.
+    high = atlas_grid(np.array([[0.0, 18.9, 0.6], [40.0, 74.3, 0.6]]), 64)
+    rows = high.views()[:, 0, 1]
+    assert abs(rows[-1] - 84.3) < 1e-6 and rows[0] <= 8.9 and rows.max() <= 85.0
+    for el in rows:
+        facing_camera(eye_at(Viewpoint(0.0, float(el), 0.6), np.zeros(3), np.array([0.0, 0.0, -1.0])),
+                      np.zeros(3), 0.1, np.array([0.0, 0.0, -1.0]), 64, 0.9)
 
 
 def _sphere_tree(radius: float, depth: int = 4) -> PlenOctree:

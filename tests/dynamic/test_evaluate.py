@@ -6,6 +6,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+import torch
 
 from dbb_capture.core.metrics import psnr
 from dbb_capture.dynamic import evaluate as ev
@@ -25,7 +26,7 @@ from dbb_capture.dynamic.evaluate import (
     with_temperature,
 )
 from dbb_capture.dynamic.model import Rssm
-from dbb_capture.dynamic.rgba import premultiplied
+from dbb_capture.dynamic.rgba import premultiplied, premultiply
 from dbb_capture.dynamic.stepper import Stepper, script_stepper
 
 from .conftest import SMALL, moving_model
@@ -85,6 +86,30 @@ def test_fixed_camera_footage_is_its_own_still_view_truth(data):
     frames = premultiplied(fixed.rgba[starts[:, None] + np.arange(1, n)[None]])
     assert still_view_target(moving_model(), fixed, starts, n) == pytest.approx(np.abs(np.diff(frames, axis=1)).mean(),
                                                                                 rel=1e-4)
+
+
+def test_the_still_view_target_makes_up_for_the_decoders_smoothing(data):
+    """The posterior's states decoded at a still view change less than the object does, by as much
+    as the same states decoded at the frames' own views change less than the frames: the target
+    is scaled up by that share."""
+    m = moving_model()
+    starts, n = long_training_runs(data, 20, 2)
+    idx = starts[:, None] + np.arange(n)[None]
+    x = torch.from_numpy(data.rgba[idx]).permute(0, 1, 4, 2, 3).float() / 255.0
+    v = torch.from_numpy(data.views[idx])
+    st = Stepper(m.eval(), 0.0)
+    with torch.no_grad():
+        h, z = st.start(x[:, 0], v[:, 0])
+        still, seen = [], []
+        for t in range(1, n):
+            h, z = st.observe(h, z, x[:, t], v[:, t])
+            still.append(premultiply(st.decode(h, z, v[:, 0])).numpy())
+            seen.append(premultiply(st.decode(h, z, v[:, t])).numpy())
+    real = motion_energy(premultiplied(data.rgba[idx].swapaxes(0, 1)[1:]))
+    share = motion_energy(np.stack(seen)) / real
+    assert 0.05 < share < 1                     # an untrained decoder smooths the footage's change
+    target = still_view_target(m, data, starts, n)
+    assert target == pytest.approx(motion_energy(np.stack(still)) / max(share, 0.25), rel=1e-3)
 
 
 def test_the_mean_column_needs_an_eager_stepper():
