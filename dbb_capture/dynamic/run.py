@@ -104,6 +104,12 @@ def train_run(dataset: Path, out: Path, cfg: RssmConfig, tcfg: TrainConfig, resu
     return record
 
 
+# The anchor is the object's mean over time: its moving parts are what it should average, not
+# outliers for robust training to outvote or for carving to cut where some views see through them
+# (docs/decisions.md, "anchor field").
+ANCHOR_FIELD_SETTINGS = {"robust_from": 1.0, "carve_share": 0.0}
+
+
 def fit_anchor(dataset: Path, folder: Path, finished: Path, tcfg: TrainConfig, quiet: bool = False) -> float:
     """Fit the view anchor, a PlenOctree of the dataset's crops (:mod:`dbb_capture.dynamic.anchor`),
     into the PlenOctree run folder ``folder`` unless it is there (an interrupted fit resumes; a
@@ -111,6 +117,7 @@ def fit_anchor(dataset: Path, folder: Path, finished: Path, tcfg: TrainConfig, q
     many steps as the RSSM's with a steps budget. It trains on the RSSM's training frames only
     (the test windows' frames are its held-out views). Returns its training seconds."""
     from ..datasets.transforms import load_dataset
+    from ..static.field import FieldConfig
     from ..static.run import RunConfig, load_run, train_run as train_tree
     from ..core.outputs import run_work_dir as work_of
 
@@ -122,7 +129,8 @@ def fit_anchor(dataset: Path, folder: Path, finished: Path, tcfg: TrainConfig, q
         minutes = None if tcfg.minutes is None else tcfg.anchor_share * tcfg.minutes
         test = tuple(f.name for f in load_dataset(Path(dataset)).frames if f.split == "test")
         train_tree(Path(dataset), folder, RunConfig(minutes=minutes, steps=tcfg.steps, holdout_names=test),
-                   resume=(work_of(folder) / "checkpoint.pt").is_file(), overwrite=True, quiet=quiet)
+                   FieldConfig(**ANCHOR_FIELD_SETTINGS), resume=(work_of(folder) / "checkpoint.pt").is_file(),
+                   overwrite=True, quiet=quiet)
     return float(load_run(folder).record.training.seconds)
 
 
