@@ -45,7 +45,9 @@ def decode_frame(data: bytes) -> Frame:
     h = P.FrameHeader.unpack(data)
     body = memoryview(data)[P.FRAME.size:]
     colour = np.frombuffer(body[:h.colour_bytes], np.uint8)
-    if h.format == P.FORMAT_PNG:
+    if h.format == P.FORMAT_RAW:
+        rgba = colour.reshape(h.height, h.width, 4).copy()
+    elif h.format == P.FORMAT_PNG:
         bgra = cv2.imdecode(colour, cv2.IMREAD_UNCHANGED)
         rgba = cv2.cvtColor(bgra, cv2.COLOR_BGRA2RGBA)
     else:
@@ -74,12 +76,12 @@ class StreamClient:
         await self.ws.close()
 
     async def send_view(self, c2w: np.ndarray, object: int = 0, size_px: int = 256, lossless: bool = False,
-                        eye: int = 0, **camera) -> int:
+                        eye: int = 0, raw: bool = False, **camera) -> int:
         """Send a view request; returns its sequence number. ``camera``: other
         :class:`~.protocol.ViewRequest` fields (``fov_y_deg``, ``fx`` ..., ``viewport_h``)."""
         seq = next(self._seq)
         req = P.ViewRequest(seq, time.time() * 1e3, object, np.asarray(c2w, float), size_px=size_px,
-                            lossless=lossless, eye=eye, **camera)
+                            lossless=lossless, eye=eye, raw=raw, **camera)
         await self.ws.send(req.pack())
         return seq
 

@@ -23,8 +23,10 @@ MAX_MESSAGE = 4096                   # bytes: longer messages are refused (error
 EYES = ("mono", "left", "right")
 FORMAT_JPEG = 0                      # colour JPEG, then alpha as a greyscale PNG
 FORMAT_PNG = 1                       # one straight-RGBA PNG (lossless)
-FORMATS = {FORMAT_JPEG: "jpeg+png-alpha", FORMAT_PNG: "png"}
+FORMAT_RAW = 2                       # the straight RGBA bytes themselves (lossless, nothing to decode)
+FORMATS = {FORMAT_JPEG: "jpeg+png-alpha", FORMAT_PNG: "png", FORMAT_RAW: "rgba8"}
 FLAG_LOSSLESS = 1                    # request flags, bit 0
+FLAG_RAW = 2                         # bit 1: raw RGBA bytes (a client on the same machine or a fast link)
 
 REQUEST = struct.Struct("<4sIdHBB16f5f4H")
 REQUEST_MAGIC = b"DBBQ"
@@ -74,10 +76,12 @@ class ViewRequest:
     size_px: int = 256
     eye: int = 0
     lossless: bool = False
+    raw: bool = False
 
     def pack(self) -> bytes:
+        flags = (FLAG_LOSSLESS if self.lossless else 0) | (FLAG_RAW if self.raw else 0)
         return REQUEST.pack(REQUEST_MAGIC, self.seq & 0xFFFFFFFF, self.client_ms, self.object, self.eye,
-                            FLAG_LOSSLESS if self.lossless else 0, *np.asarray(self.c2w, np.float32).ravel(),
+                            flags, *np.asarray(self.c2w, np.float32).ravel(),
                             self.fov_y_deg, self.fx, self.fy, self.cx, self.cy,
                             self.viewport_w, self.viewport_h, self.size_px, 0)
 
@@ -99,7 +103,8 @@ class ViewRequest:
         check_rigid(c2w)
         if size == 0 and (vh == 0 or (fx <= 0 and not 0 < fov < 180)):
             raise ProtocolError("bad_value", "size_px 0 needs the viewport height and a field of view or fx")
-        return cls(seq, client_ms, obj, c2w, fov, fx, fy, cx, cy, vw, vh, size, eye, bool(flags & FLAG_LOSSLESS))
+        return cls(seq, client_ms, obj, c2w, fov, fx, fy, cx, cy, vw, vh, size, eye, bool(flags & FLAG_LOSSLESS),
+                   bool(flags & FLAG_RAW))
 
     @property
     def eye_position(self) -> np.ndarray:
@@ -176,7 +181,8 @@ CONTROL_TYPES = ("reset", "pause", "quality", "ping")
 @dataclass(frozen=True)
 class Control:
     """A JSON control message: ``reset`` / ``pause`` (``object`` index or None for all, ``paused``),
-    ``quality`` (``max_size`` pixels or None for the server's, ``lossless``, ``jpeg_quality``), ``ping``."""
+    ``quality`` (``max_size`` pixels or None for the server's, ``lossless``, ``raw``, ``jpeg_quality``),
+    ``ping``."""
 
     type: str
     object: int | None = None
@@ -184,6 +190,7 @@ class Control:
     max_size: int | None = None
     lossless: bool | None = None
     jpeg_quality: int | None = None
+    raw: bool | None = None
     id: object = None
 
 
@@ -206,12 +213,14 @@ def parse_control(text: str) -> Control:
             raise ProtocolError("bad_value", "paused must be true or false")
         c = Control("pause", obj, bool(d.get("paused", True)), id=c.id)
     elif c.type == "quality":
-        size, lossless, q = d.get("max_size"), d.get("lossless"), d.get("jpeg_quality")
+        size, lossless, q, raw = d.get("max_size"), d.get("lossless"), d.get("jpeg_quality"), d.get("raw")
         if size is not None and (not isinstance(size, int) or isinstance(size, bool) or not 16 <= size <= 4096):
             raise ProtocolError("bad_value", "max_size must be an integer from 16 to 4096 (or null)")
         if lossless is not None and not isinstance(lossless, bool):
             raise ProtocolError("bad_value", "lossless must be true or false")
+        if raw is not None and not isinstance(raw, bool):
+            raise ProtocolError("bad_value", "raw must be true or false")
         if q is not None and (not isinstance(q, int) or isinstance(q, bool) or not 1 <= q <= 100):
             raise ProtocolError("bad_value", "jpeg_quality must be an integer from 1 to 100")
-        c = Control("quality", None, max_size=size, lossless=lossless, jpeg_quality=q, id=c.id)
+        c = Control("quality", None, max_size=size, lossless=lossless, jpeg_quality=q, raw=raw, id=c.id)
     return c

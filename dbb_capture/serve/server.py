@@ -38,12 +38,13 @@ from ..core.errors import DbbError
 from ..geometry.conventions import opengl_from_opencv
 from . import protocol as P
 from .scene import Placement
-from .worker import JPEG, PNG, Control, Failed, Fatal, Job, Ready, Rendered
+from .worker import JPEG, PNG, RAW, Control, Failed, Fatal, Job, Ready, Rendered
 
 MAX_SIZE = 512                   # default cap on a canvas's side (pixels)
 MIN_SIZE = 16
 SIZE_STEP = 8                    # canvas sides are rounded up to this (fewer distinct sizes, more cache hits)
 JPEG_QUALITY = 90
+WIRE_FORMATS = {JPEG: P.FORMAT_JPEG, PNG: P.FORMAT_PNG, RAW: P.FORMAT_RAW}
 WS_MAX_BYTES = 1 << 20           # websockets closes the connection above this; our own cap is P.MAX_MESSAGE
 RESTARTS = 3                     # a worker that dies more often than this within RESTART_WINDOW_S is given up
 RESTART_WINDOW_S = 60.0
@@ -228,6 +229,7 @@ class Slot:
 class Quality:
     max_size: int | None = None
     lossless: bool = False
+    raw: bool = False
     jpeg_quality: int = JPEG_QUALITY
 
 
@@ -457,8 +459,9 @@ class Server:
         px = req.screen_size(side, D * obj.placement.scale)
         cap = min(self.max_size, quality.max_size or self.max_size)
         size = int(min(cap, max(MIN_SIZE, SIZE_STEP * math.ceil(px / SIZE_STEP))))
-        lossless = req.lossless or quality.lossless
-        return Job(client, (client, obj.index, req.eye), eye, size, PNG if lossless else JPEG,
+        encoding = (RAW if req.raw or quality.raw else
+                    PNG if req.lossless or quality.lossless else JPEG)
+        return Job(client, (client, obj.index, req.eye), eye, size, encoding,
                    quality.jpeg_quality, obj.board_up_hint(req.c2w), time.monotonic())
 
     def _frame(self, obj: Served, req: P.ViewRequest, msg: object) -> bytes | str:
@@ -466,7 +469,7 @@ class Server:
             return P.error_message(msg.code, msg.message, seq=req.seq, object=obj.index)
         assert isinstance(msg, Rendered)
         h = P.FrameHeader(req.seq, req.client_ms, obj.index, req.eye,
-                          P.FORMAT_PNG if msg.encoding == PNG else P.FORMAT_JPEG, time.time() * 1e3,
+                          WIRE_FORMATS[msg.encoding], time.time() * 1e3,
                           msg.render_ms, obj.scene_camera(msg.c2w), obj.scene_centre(),
                           msg.side_m * obj.placement.scale, msg.size, msg.size, msg.step,
                           len(msg.colour), len(msg.alpha))
@@ -490,6 +493,8 @@ class Server:
                 quality.max_size = c.max_size
             if c.lossless is not None:
                 quality.lossless = c.lossless
+            if c.raw is not None:
+                quality.raw = c.raw
             if c.jpeg_quality is not None:
                 quality.jpeg_quality = c.jpeg_quality
         reply = {"type": "pong" if c.type == "ping" else "ack", "of": c.type, "id": c.id, "server_ms": time.time() * 1e3}

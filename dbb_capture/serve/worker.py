@@ -44,7 +44,7 @@ ALPHA_PNG = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRI
              cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_UP]
 
 # Encodings of a canvas (the protocol's formats and the thesis protocol's three modes).
-JPEG, PNG, SEED_RGBA, SEED_BORDER, SEED_BGR = "jpeg", "png", "seed-rgba", "seed-border", "seed-bgr"
+JPEG, PNG, RAW, SEED_RGBA, SEED_BORDER, SEED_BGR = "jpeg", "png", "raw", "seed-rgba", "seed-border", "seed-bgr"
 
 
 @dataclass(frozen=True)
@@ -127,6 +127,8 @@ def encode(rgba: np.ndarray, encoding: str, jpeg_quality: int = 90) -> tuple[byt
         ok2, al = cv2.imencode(".png", np.ascontiguousarray(rgba[..., 3]), ALPHA_PNG)
         assert ok1 and ok2
         return c.tobytes(), al.tobytes()
+    if encoding == RAW:
+        return np.ascontiguousarray(rgba).tobytes(), b""
     if encoding == SEED_BGR:
         # The thesis's server sent colour without alpha: straight colour on black.
         img = (rgba[..., :3].astype(np.uint16) * rgba[..., 3:] // 255).astype(np.uint8)

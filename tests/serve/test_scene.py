@@ -76,8 +76,9 @@ def test_request_and_frame_round_trip_and_checks():
 def test_control_messages():
     assert parse_control('{"type": "pause", "object": 1, "paused": false}').paused is False
     q = parse_control('{"type": "quality", "max_size": 256, "lossless": true}')
-    assert (q.max_size, q.lossless, q.jpeg_quality) == (256, True, None)
-    for bad, code in (('{"type": "pause", "paused": "yes"}', "bad_value"), ('[1, 2]', "bad_request"),
+    assert (q.max_size, q.lossless, q.jpeg_quality, q.raw) == (256, True, None, None)
+    assert parse_control('{"type": "quality", "raw": true}').raw is True
+    for bad, code in (('{"type": "quality", "raw": 1}', "bad_value"), ('{"type": "pause", "paused": "yes"}', "bad_value"), ('[1, 2]', "bad_request"),
                       ('{"type": "reset", "object": true}', "bad_value"),
                       ('{"type": "quality", "jpeg_quality": 101}', "bad_value")):
         with pytest.raises(ProtocolError) as e:

@@ -13,7 +13,7 @@ from dbb_capture.bundle.render import render_bundle
 from dbb_capture.core.metrics import psnr
 from dbb_capture.geometry.conventions import corner_from_centre_px
 from dbb_capture.serve.client import StreamClient, look_from
-from dbb_capture.serve.protocol import FORMAT_JPEG, FORMAT_PNG
+from dbb_capture.serve.protocol import FORMAT_JPEG, FORMAT_PNG, FORMAT_RAW
 
 from .conftest import run
 
@@ -80,9 +80,15 @@ def test_static_frame_equals_export_render(server, static_bundle, tmp_path):
             cam, _ = object_eye(c.hello, 0, [0.3, 0.5, 1.0], 0.5)
             lossless = await c.view(cam, 0, size_px=96, lossless=True)
             jpeg = await c.view(cam, 0, size_px=96)
-            return c.hello, lossless, jpeg
-    hello, lossless, jpeg = run(go())
+            raw = await c.view(cam, 0, size_px=96, raw=True)
+            await c.ws.send(json.dumps({"type": "quality", "raw": True}))        # the connection's default
+            raw2 = await c.view(cam, 0, size_px=96, lossless=True)
+            return c.hello, lossless, jpeg, raw, raw2
+    hello, lossless, jpeg, raw, raw2 = run(go())
     assert lossless.header.format == FORMAT_PNG and jpeg.header.format == FORMAT_JPEG
+    assert raw.header.format == raw2.header.format == FORMAT_RAW
+    assert raw.header.colour_bytes == 96 * 96 * 4 and raw.header.alpha_bytes == 0
+    assert np.array_equal(raw.rgba, lossless.rgba) and np.array_equal(raw2.rgba, lossless.rgba)
     assert lossless.rgba.shape == (96, 96, 4)
     assert lossless.rgba[..., 3].max() > 200 and lossless.rgba[..., 3].mean() < 200   # an object, not a wall
     want = render_as_export(static_bundle, hello, 0, lossless, tmp_path)

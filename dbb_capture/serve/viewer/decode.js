@@ -2,7 +2,7 @@
 // waits behind the page's drawing, and on the page itself where workers are unavailable. No
 // imports of three.js here: workers do not see the page's import map.
 
-import { FORMAT_PNG, HEADER_BYTES } from './stream.js';
+import { FORMAT_PNG, FORMAT_RAW, HEADER_BYTES } from './stream.js';
 
 const BITMAP = { premultiplyAlpha: 'none', colorSpaceConversion: 'none' };
 let scratch = null;
@@ -24,6 +24,7 @@ function pixelsOf(bitmap) {
  *  colour and alpha: JPEG + greyscale PNG, or one RGBA PNG). Premultiplied so that texture
  *  filtering never mixes the colour of transparent pixels into the edges. */
 export async function decodeFrame(buffer, head) {
+  if (head.format === FORMAT_RAW) return rawPixels(buffer, head);
   const colour = new Blob([new Uint8Array(buffer, HEADER_BYTES, head.colourBytes)],
                           { type: head.format === FORMAT_PNG ? 'image/png' : 'image/jpeg' });
   const pending = [createImageBitmap(colour, BITMAP)];
@@ -38,6 +39,17 @@ export async function decodeFrame(buffer, head) {
     const a = pixelsOf(ab);                 // grey: R = G = B = alpha
     for (let i = 3; i < rgba.length; i += 4) rgba[i] = a[i - 3];
   }
+  return premultiply(rgba);
+}
+
+/** The premultiplied RGBA of a raw frame (format 2): a copy of its straight bytes, premultiplied.
+ *  No image decoder involved: a fraction of a millisecond at 256 px, so the page does it itself. */
+export function rawPixels(buffer, head) {
+  if (head.colourBytes !== 4 * head.width * head.height) throw new Error('a raw frame of the wrong length');
+  return premultiply(new Uint8Array(buffer.slice(HEADER_BYTES, HEADER_BYTES + head.colourBytes)));
+}
+
+function premultiply(rgba) {
   for (let i = 0; i < rgba.length; i += 4) {
     const a = rgba[i + 3];
     if (a === 255) continue;

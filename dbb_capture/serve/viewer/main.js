@@ -7,10 +7,10 @@ import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
 import { VRButton } from 'three/addons/webxr/VRButton.js';
 import { Billboard } from './billboard.js';
-import { decodeFrame, fingerprint } from './decode.js';
+import { decodeFrame, fingerprint, rawPixels } from './decode.js';
 import { Fly } from './fly.js';
 import { Physics } from './physics.js';
-import { Stream, packRequest, parseFrameHeader } from './stream.js';
+import { FORMAT_NAMES, FORMAT_RAW, Stream, packRequest, parseFrameHeader } from './stream.js';
 
 const params = new URLSearchParams(location.search);
 const options = {
@@ -18,6 +18,9 @@ const options = {
   hud: params.get('hud') !== '0',
   background: params.get('bg') || '#20242b',
   quality: params.get('quality') || 'auto',
+  // Frame encoding: raw RGBA bytes from a server on this machine (no encoding or decoding on
+  // either side; 256 KB per 256 px frame is nothing on loopback), else JPEG colour + PNG alpha.
+  encoding: params.get('encoding') || 'auto',     // auto, jpeg, png, raw
   wireframe: params.get('wireframe') === '1',
 };
 const SAMPLES = 400;                             // latency samples kept per object
@@ -160,10 +163,13 @@ function onHello(hello) {
   sendQuality();
 }
 
+const LOOPBACK = /^(localhost|127(\.\d+){3}|\[::1\])$/.test(location.hostname);
+
 function sendQuality() {
-  const q = state.quality;
+  const q = state.quality, e = options.encoding;
   if (!stream) return;
-  const msg = { type: 'quality', lossless: q === 'lossless', max_size: /^\d+$/.test(q) ? Number(q) : null };
+  const msg = { type: 'quality', lossless: q === 'lossless' || e === 'png',
+                raw: e === 'raw' || (e === 'auto' && LOOPBACK), max_size: /^\d+$/.test(q) ? Number(q) : null };
   stream.control(msg);
   for (const o of objects) o.lastSent = null;     // ask again at the new quality
 }
@@ -356,6 +362,12 @@ try {
 }
 
 function decode(buffer, head) {
+  if (head.format === FORMAT_RAW) {            // nothing to decode: no trip through the worker
+    return new Promise((resolve) => {
+      const rgba = rawPixels(buffer, head);
+      resolve({ rgba, hash: fingerprint(rgba) });
+    });
+  }
   if (!decoder) {
     return decodeFrame(buffer, head).then((rgba) => ({ rgba, hash: fingerprint(rgba) }));
   }
@@ -602,6 +614,7 @@ function setOptions(opt) {
       if (o.proxy) { o.proxy.shadow.visible = o.visible; o.proxy.wire.visible = o.visible && options.wireframe; }
     }
   }
+  if ('encoding' in opt) { options.encoding = opt.encoding; sendQuality(); }
   if ('autoRotate' in opt) { controls.autoRotate = opt.autoRotate !== 0; controls.autoRotateSpeed = opt.autoRotate || 0; }
 }
 if (options.plain) setOptions({ floor: false });
@@ -638,7 +651,7 @@ function updateHud() {
   const fmt = (v) => (Number.isFinite(v) ? v.toFixed(0) : '–');
   $('objects').innerHTML = objects.map((o) => {
     const l = o.last;
-    const res = l ? `${l.width}² ${l.format === 1 ? 'png' : 'jpeg'}` : '–';
+    const res = l ? `${l.width}² ${FORMAT_NAMES[l.format] ?? l.format}` : '–';
     const err = o.error ? ` · <span style="color:#f88">${o.error}</span>` : '';
     return `<div class="obj"><b>${o.info.index} ${o.info.id}</b> ${o.info.kind}${o.visible ? '' : ' (hidden)'} · ${res}` +
       `<br><span class="stats">${perSecond(o.shownTimes, now).toFixed(1)} drawn / ${perSecond(o.recvTimes, now).toFixed(1)} received frames/s` +
@@ -715,7 +728,7 @@ window.dbb = {
   get state() {
     const now = performance.now();
     return {
-      status: state.status, detail: state.detail, connects: state.connects, quality: state.quality,
+      status: state.status, detail: state.detail, connects: state.connects, quality: state.quality, encoding: options.encoding,
       errors: state.errors.slice(), fps: state.fps, render_ms: state.renderMs, software, antialias, floor_y: floorY,
       drawn: { count: state.drawn.count, seconds: (now - state.drawn.since) / 1000 },
       xr: { ...state.xr },

@@ -4,9 +4,11 @@ export const REQUEST_BYTES = 112;
 export const HEADER_BYTES = 128;
 export const FORMAT_JPEG = 0;      // colour JPEG + alpha greyscale PNG
 export const FORMAT_PNG = 1;       // one RGBA PNG
+export const FORMAT_RAW = 2;       // the straight RGBA bytes (nothing to decode)
+export const FORMAT_NAMES = { [FORMAT_JPEG]: 'jpeg', [FORMAT_PNG]: 'png', [FORMAT_RAW]: 'raw' };
 
 /** A 112-byte view request. `c2w`: 16 numbers, camera-to-world, row-major, OpenGL axes. */
-export function packRequest({ seq, clientMs, object, eye = 0, lossless = false, c2w, fovYDeg = 0,
+export function packRequest({ seq, clientMs, object, eye = 0, lossless = false, raw = false, c2w, fovYDeg = 0,
                               fx = 0, fy = 0, cx = 0, cy = 0, viewportW = 0, viewportH = 0, sizePx = 0 }) {
   const buf = new ArrayBuffer(REQUEST_BYTES);
   const v = new DataView(buf);
@@ -15,7 +17,7 @@ export function packRequest({ seq, clientMs, object, eye = 0, lossless = false, 
   v.setFloat64(8, clientMs, true);
   v.setUint16(16, object, true);
   v.setUint8(18, eye);
-  v.setUint8(19, lossless ? 1 : 0);
+  v.setUint8(19, (lossless ? 1 : 0) | (raw ? 2 : 0));
   for (let i = 0; i < 16; i++) v.setFloat32(20 + 4 * i, c2w[i], true);
   v.setFloat32(84, fovYDeg, true);
   v.setFloat32(88, fx, true); v.setFloat32(92, fy, true);
