@@ -249,6 +249,47 @@ def surface_below(V: np.ndarray, F: np.ndarray, x: float, z: float) -> float | N
     return float(y[inside].max())
 
 
+def test_baked_floor_shadows_look_as_the_live_ones(browser, viewer_server):
+    """While nothing moves the floor's shadows come from a texture baked once; the picture is the
+    live shadow map's. A ball brings the live shadows back."""
+    obj = hello_of(viewer_server)["objects"][0]
+    with viewer(browser, viewer_server, "?hud=0") as v:
+        v.wait("window.dbb.state.objects.every((o) => o.proxy_loaded && o.drawn_seq > 0)", 60)
+        v.js("window.dbb.setOptions({visible: [0]})")
+        # From above, between the object and where its centre's shadow falls on the floor.
+        s = v.state()
+        c, sun = np.asarray(obj["position"], float), np.asarray(s["sun_dir"], float)
+        shadow_at = c - (c[1] - s["floor_y"]) / sun[1] * sun
+        target = (c + shadow_at) / 2
+        eye = target + np.array([0.0, 1.0, 0.3]) * (np.linalg.norm(shadow_at - c) + 3 * obj["radius_m"])
+        v.set_camera(eye, target)
+        v.wait_frame_from(0, eye)
+        v.wait("window.dbb.state.floor_baked", 10)
+        baked = v.screenshot()
+        v.js("window.dbb.setOptions({bake: false})")
+        v.wait("!window.dbb.state.floor_baked", 10)
+        v.js("() => new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r)))")
+        live = v.screenshot()
+        v.js("window.dbb.setOptions({shadows: false})")
+        v.js("() => new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r)))")
+        unshadowed = v.screenshot()
+        # There is a shadow in the picture, and the baked one is the live one.
+        shadow = np.abs(live.astype(int) - unshadowed.astype(int)).mean()
+        err = np.abs(baked.astype(int) - live.astype(int)).mean()
+        print(f"\nbaked floor shadows against live ones: {psnr(baked / 255, live / 255):.1f} dB, mean error "
+              f"{err:.2f} grey levels (the shadow itself: {shadow:.2f})")
+        assert shadow > 0.3 and err < 0.1 * shadow
+        assert psnr(baked / 255, live / 255) >= 35
+        v.js("window.dbb.setOptions({bake: true, shadows: true})")
+        v.wait("window.dbb.state.floor_baked", 10)
+        v.js("(p) => window.dbb.dropAt([p], 'ball', 0.005)", [obj["position"][0] + 2 * obj["radius_m"],
+                                                             obj["position"][1] + obj["radius_m"], obj["position"][2]])
+        v.wait("!window.dbb.state.floor_baked", 10)
+        v.js("window.dbb.clearBodies()")
+        v.wait("window.dbb.state.floor_baked", 10)
+        assert v.errors == [], v.errors
+
+
 def test_balls_come_to_rest_on_the_proxy(browser, viewer_server, static_bundle):
     hello = hello_of(viewer_server)
     obj = hello["objects"][0]

@@ -22,6 +22,7 @@ const options = {
   // either side; 256 KB per 256 px frame is nothing on loopback), else JPEG colour + PNG alpha.
   encoding: params.get('encoding') || 'auto',     // auto, jpeg, png, raw
   wireframe: params.get('wireframe') === '1',
+  bake: params.get('bake') !== '0',              // baked floor shadows while nothing moves
 };
 const SAMPLES = 400;                             // latency samples kept per object
 const REQUEST_TIMEOUT_MS = 4000;                 // an answer this late is given up on (a new request goes out)
@@ -95,6 +96,23 @@ const floor = new THREE.Mesh(new THREE.CircleGeometry(1, 96), floorMaterial);
 floor.rotation.x = -Math.PI / 2;
 floor.receiveShadow = true;
 scene.add(floor);
+
+// The floor's shadows, baked. The proxies and the sun stand still, so while no ball or box moves
+// the shadowed floor around the objects is drawn once, from above, into a texture that a patch
+// over the floor shows; the floor itself then samples no shadow map, which a software-rendered
+// browser spends more on than on everything else. Bodies bring the live shadow map back.
+const BAKE_PX = 1024;
+const bakeTarget = new THREE.WebGLRenderTarget(BAKE_PX, BAKE_PX);
+bakeTarget.texture.colorSpace = THREE.SRGBColorSpace;
+const bakeCamera = new THREE.OrthographicCamera(-1, 1, 1, -1, 0.001, 10);
+bakeCamera.up.set(0, 0, -1);                     // image up along -z: the patch's own texture layout
+const shadowPatch = new THREE.Mesh(new THREE.PlaneGeometry(1, 1), new THREE.MeshBasicMaterial({
+  map: bakeTarget.texture, polygonOffset: true, polygonOffsetFactor: -1, polygonOffsetUnits: -1 }));
+shadowPatch.rotation.x = -Math.PI / 2;
+shadowPatch.renderOrder = 0.5;
+shadowPatch.visible = false;
+scene.add(shadowPatch);
+let floorBaked = false;
 
 const physics = new Physics(scene);
 const gltf = new GLTFLoader();
@@ -195,6 +213,51 @@ function layoutScene() {
   sc.near = 0.01;
   sc.far = 12 * sceneRadius;
   sc.updateProjectionMatrix();
+}
+
+/** Draw the shadowed floor around the objects into the patch's texture (the shadow map first). */
+function bakeFloor() {
+  const h = 3 * sceneRadius;                     // shadows fall within ~2.1 radii of the centre
+  shadowPatch.position.set(sceneCentre.x, floorY, sceneCentre.z);
+  shadowPatch.scale.setScalar(2 * h);
+  bakeCamera.left = bakeCamera.bottom = -h;
+  bakeCamera.right = bakeCamera.top = h;
+  bakeCamera.near = 0.5 * h;
+  bakeCamera.far = 2 * h;
+  bakeCamera.position.set(sceneCentre.x, floorY + h, sceneCentre.z);
+  bakeCamera.lookAt(sceneCentre.x, floorY, sceneCentre.z);
+  bakeCamera.updateProjectionMatrix();
+  const shown = [];
+  // Only the floor is drawn; the shadow casters stay for the shadow map (the bake camera sees
+  // layer 0 only, not theirs).
+  scene.traverse((n) => {
+    if (n.visible && n !== floor && !n.castShadow && (n.isMesh || n.isLine || n.isPoints)) { shown.push(n); n.visible = false; }
+  });
+  const fog = scene.fog, xr = renderer.xr.enabled;
+  scene.fog = null;
+  renderer.xr.enabled = false;
+  floor.receiveShadow = true;
+  renderer.shadowMap.needsUpdate = true;
+  renderer.setRenderTarget(bakeTarget);
+  renderer.render(scene, bakeCamera);
+  renderer.setRenderTarget(null);
+  renderer.xr.enabled = xr;
+  scene.fog = fog;
+  for (const n of shown) n.visible = true;
+}
+
+/** Baked floor shadows while nothing moves; the live shadow map while bodies exist. */
+function updateShadows() {
+  const live = physics.bodies.length > 0;
+  if (options.bake && sun.castShadow && renderer.shadowMap.enabled && !live) {
+    bakeFloor();
+    floorBaked = true;
+  } else {
+    renderer.shadowMap.needsUpdate = true;
+    floorBaked = false;
+  }
+  floor.receiveShadow = !floorBaked;
+  shadowPatch.visible = floorBaked;
 }
 
 // Where an object stands: the table it was filmed on (its bundle's support plane), else its
@@ -433,7 +496,7 @@ function animate(time, xrFrame) {
   physics.step(dt);
   if (camera.layers.isEnabled(PROXY_LAYER) !== physics.bodies.length > 0) {
     camera.layers.toggle(PROXY_LAYER);
-    invalidate();
+    invalidate(true);                               // baked shadows or live ones from here on
   }
   if (physics.moving()) invalidate(true);
   const view = currentView();
@@ -448,7 +511,7 @@ function animate(time, xrFrame) {
     needsRender = true;
   }
   if (needsRender || renderer.xr.isPresenting) {
-    if (needsShadow) { renderer.shadowMap.needsUpdate = true; needsShadow = false; }
+    if (needsShadow) { updateShadows(); needsShadow = false; }
     needsRender = false;
     lastRendered.matrix.copy(camera.matrixWorld);
     lastRendered.projection.copy(camera.projectionMatrix);
@@ -614,6 +677,7 @@ function setOptions(opt) {
       if (o.proxy) { o.proxy.shadow.visible = o.visible; o.proxy.wire.visible = o.visible && options.wireframe; }
     }
   }
+  if ('bake' in opt) options.bake = opt.bake;
   if ('encoding' in opt) { options.encoding = opt.encoding; sendQuality(); }
   if ('autoRotate' in opt) { controls.autoRotate = opt.autoRotate !== 0; controls.autoRotateSpeed = opt.autoRotate || 0; }
 }
@@ -729,7 +793,8 @@ window.dbb = {
     const now = performance.now();
     return {
       status: state.status, detail: state.detail, connects: state.connects, quality: state.quality, encoding: options.encoding,
-      errors: state.errors.slice(), fps: state.fps, render_ms: state.renderMs, software, antialias, floor_y: floorY,
+      errors: state.errors.slice(), fps: state.fps, render_ms: state.renderMs, software, antialias, floor_y: floorY, floor_baked: floorBaked,
+      sun_dir: sun.position.clone().sub(sun.target.position).normalize().toArray(),
       drawn: { count: state.drawn.count, seconds: (now - state.drawn.since) / 1000 },
       xr: { ...state.xr },
       objects: objects.map((o) => ({
