@@ -169,7 +169,7 @@ def test_page_loads_connects_and_shows_every_object(browser, viewer_server):
         v.wait("window.dbb.state.objects[0].last.width === 256", 30)
         v.js("window.dbb.setOptions({encoding: 'jpeg'})")
         v.wait("window.dbb.state.objects[0].last.format === 0", 30)
-        assert "256² jpeg" in v.page.inner_text("#objects")
+        v.wait("document.getElementById('objects').textContent.includes('256² jpeg')", 5)   # the HUD says so
         v.page.select_option("#quality", "lossless")
         v.wait("window.dbb.state.objects[0].last.format === 1", 30)
         assert s["floor_y"] < min(o["top"][1] for o in s["objects"])

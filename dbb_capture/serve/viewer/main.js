@@ -23,6 +23,7 @@ const options = {
   encoding: params.get('encoding') || 'auto',     // auto, jpeg, png, raw
   wireframe: params.get('wireframe') === '1',
   bake: params.get('bake') !== '0',              // baked floor shadows while nothing moves
+  shadows: true,
 };
 const SAMPLES = 400;                             // latency samples kept per object
 const REQUEST_TIMEOUT_MS = 4000;                 // an answer this late is given up on (a new request goes out)
@@ -98,21 +99,21 @@ floor.receiveShadow = true;
 scene.add(floor);
 
 // The floor's shadows, baked. The proxies and the sun stand still, so while no ball or box moves
-// the shadowed floor around the objects is drawn once, from above, into a texture that a patch
-// over the floor shows; the floor itself then samples no shadow map, which a software-rendered
-// browser spends more on than on everything else. Bodies bring the live shadow map back.
+// the lit, shadowed floor around the objects is drawn once, from above, into a texture, and the
+// floor becomes that texture, unlit: beyond the baked square its edge texels (lit floor, no
+// shadow) stretch to the horizon. The sun then casts no shadow at all: while it does, every lit
+// material samples the shadow map (shaders select, so even a floor that receives none pays for
+// it), which with the floor's own lighting is more than a software-rendered browser draws at 60
+// frames/s beside the server. Bodies bring the live floor and shadows back.
 const BAKE_PX = 1024;
-const bakeTarget = new THREE.WebGLRenderTarget(BAKE_PX, BAKE_PX);
-bakeTarget.texture.colorSpace = THREE.SRGBColorSpace;
+// Linear 8-bit texels (the floor's tones are mid-greys, where that shows no steps) with mipmaps:
+// a software renderer samples an sRGB texture, or a large one without mipmaps, slowly.
+const bakeTarget = new THREE.WebGLRenderTarget(BAKE_PX, BAKE_PX, {
+  generateMipmaps: true, minFilter: THREE.LinearMipmapLinearFilter });
 const bakeCamera = new THREE.OrthographicCamera(-1, 1, 1, -1, 0.001, 10);
 bakeCamera.up.set(0, 0, -1);                     // image up along -z: the patch's own texture layout
-const shadowPatch = new THREE.Mesh(new THREE.PlaneGeometry(1, 1), new THREE.MeshBasicMaterial({
-  map: bakeTarget.texture, polygonOffset: true, polygonOffsetFactor: -1, polygonOffsetUnits: -1 }));
-shadowPatch.rotation.x = -Math.PI / 2;
-shadowPatch.renderOrder = 0.5;
-shadowPatch.visible = false;
-scene.add(shadowPatch);
-let floorBaked = false;
+const bakedFloorMaterial = new THREE.MeshBasicMaterial({ map: bakeTarget.texture });
+let floorBaked = false, bakes = 0;
 
 const physics = new Physics(scene);
 const gltf = new GLTFLoader();
@@ -215,11 +216,17 @@ function layoutScene() {
   sc.updateProjectionMatrix();
 }
 
-/** Draw the shadowed floor around the objects into the patch's texture (the shadow map first). */
+/** Draw the lit floor with its shadows around the objects into the baked texture (the shadow map
+ *  first), and place the texture on the floor's own coordinates. */
 function bakeFloor() {
+  bakes += 1;
   const h = 3 * sceneRadius;                     // shadows fall within ~2.1 radii of the centre
-  shadowPatch.position.set(sceneCentre.x, floorY, sceneCentre.z);
-  shadowPatch.scale.setScalar(2 * h);
+  // The floor's UVs span its disc (radius r, centred at x = z = 0): u = (x / r + 1) / 2 and, the
+  // disc turned to face up, v = (1 - z / r) / 2. The bake's image spans the square of side 2h
+  // around the scene's centre, its v along -z.
+  const r = floor.scale.x, t = bakeTarget.texture;
+  t.repeat.set(r / h, r / h);
+  t.offset.set((h - r - sceneCentre.x) / (2 * h), (h - r + sceneCentre.z) / (2 * h));
   bakeCamera.left = bakeCamera.bottom = -h;
   bakeCamera.right = bakeCamera.top = h;
   bakeCamera.near = 0.5 * h;
@@ -236,7 +243,9 @@ function bakeFloor() {
   const fog = scene.fog, xr = renderer.xr.enabled;
   scene.fog = null;
   renderer.xr.enabled = false;
+  floor.material = floorMaterial;
   floor.receiveShadow = true;
+  sun.castShadow = true;
   renderer.shadowMap.needsUpdate = true;
   renderer.setRenderTarget(bakeTarget);
   renderer.render(scene, bakeCamera);
@@ -249,15 +258,16 @@ function bakeFloor() {
 /** Baked floor shadows while nothing moves; the live shadow map while bodies exist. */
 function updateShadows() {
   const live = physics.bodies.length > 0;
-  if (options.bake && sun.castShadow && renderer.shadowMap.enabled && !live) {
+  if (options.bake && options.shadows && renderer.shadowMap.enabled && !live) {
     bakeFloor();
     floorBaked = true;
   } else {
     renderer.shadowMap.needsUpdate = true;
     floorBaked = false;
   }
+  sun.castShadow = options.shadows && !floorBaked;
   floor.receiveShadow = !floorBaked;
-  shadowPatch.visible = floorBaked;
+  floor.material = floorBaked ? bakedFloorMaterial : floorMaterial;
 }
 
 // Where an object stands: the table it was filmed on (its bundle's support plane), else its
@@ -667,7 +677,7 @@ function setOptions(opt) {
   invalidate(true);
   if ('floor' in opt) floor.visible = opt.floor;
   if ('background' in opt) { scene.background = new THREE.Color(opt.background); if (scene.fog) scene.fog.color = scene.background; }
-  if ('shadows' in opt) { sun.castShadow = opt.shadows; }
+  if ('shadows' in opt) options.shadows = opt.shadows;
   if ('hud' in opt) document.body.classList.toggle('bare', !opt.hud);
   if ('wireframe' in opt) setWireframe(opt.wireframe);
   if ('visible' in opt) {
@@ -793,7 +803,7 @@ window.dbb = {
     const now = performance.now();
     return {
       status: state.status, detail: state.detail, connects: state.connects, quality: state.quality, encoding: options.encoding,
-      errors: state.errors.slice(), fps: state.fps, render_ms: state.renderMs, software, antialias, floor_y: floorY, floor_baked: floorBaked,
+      errors: state.errors.slice(), fps: state.fps, render_ms: state.renderMs, software, antialias, floor_y: floorY, floor_baked: floorBaked, bakes,
       sun_dir: sun.position.clone().sub(sun.target.position).normalize().toArray(),
       drawn: { count: state.drawn.count, seconds: (now - state.drawn.since) / 1000 },
       xr: { ...state.xr },
