@@ -40,7 +40,7 @@ def main() -> None:
               help="Do not refine past this many active lattice points.")
 @click.option("--depth", type=click.IntRange(1, 8), default=None, help="Octree depth (default: the lattice's).")
 @click.option("--prune-weight", type=click.FloatRange(0, 1), default=0.005, show_default=True,
-              help="Drop octree leaves no training ray weights this much (0: keep all).")
+              help="Drop octree leaves no training ray weights this much (a depth-7 leaf's; halved per level deeper; 0: keep all).")
 @click.option("--holdout-every", type=int, default=8, show_default=True,
               help="Without a split, hold out every n-th frame (0: none).")
 @click.option("--holdout", "holdout_names", default="", help="Comma-separated frame names to hold out instead.")

@@ -44,7 +44,8 @@ def bake(field: VoxelField, depth: int | None = None, alpha_min: float = 0.03, m
     Density and SH coefficients are read at each cell's centre (an average over the cell
     smears the field's thin surfaces: docs/decisions.md, density at the leaf centre).
     With ``cameras`` (the training views: (c2w, intrinsics) pairs) the tree is then
-    weight-pruned (:func:`prune_by_weight` at ``prune_weight``; 0 turns it off).
+    weight-pruned (:func:`prune_by_weight` at ``prune_weight``, a depth-7 leaf's weight, halved
+    per level deeper; 0 turns it off).
     """
     depth = default_depth(field) if depth is None else int(depth)
     if not 1 <= depth <= 8:
@@ -85,7 +86,10 @@ def bake(field: VoxelField, depth: int | None = None, alpha_min: float = 0.03, m
     fmt = SH_FORMATS[field.cfg.n_basis]
     tree = PlenOctree(np.clip(data, -65000, 65000).astype(np.float16), child, pd, inv, offset, depth, fmt)
     if cameras is not None:
-        tree = prune_by_weight(tree, cameras, prune_weight)
+        # A ray crosses half as much of a leaf one level deeper, so a faint or thin part gives
+        # each of its leaves half the weight: a fixed threshold cut visible detail at depth 8
+        # (docs/decisions.md, ``--prune-weight``).
+        tree = prune_by_weight(tree, cameras, prune_weight * min(1.0, 2.0 ** (7 - depth)))
     return tree
 
 
