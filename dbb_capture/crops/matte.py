@@ -52,6 +52,7 @@ class MatteConfig:
     disc_margin: float = 1.04      # the sphere's disc, slightly enlarged
     min_blob: float = 0.1          # pieces under this fraction of the largest are dropped (specks; parts stay joined)
     edge_px: int = 1               # width of the band where alpha is fractional
+    edge_ramp: tuple[float, float] = (0.0, 1.0)  # the band's alpha mapped linearly from (lo, hi) to (0, 1)
     edge_gain: float = 1.25        # the compositing alpha of a shaded rim runs low (F from inside is brighter): x this
     rim_min_off: float = 0.3       # shaded-rim alpha where the room lies off the object's shading line by this share of |F - B| (inf: off)
     guided_px: int = 3             # edge-aware smoothing of the soft alpha before the decision (0: off)
@@ -66,6 +67,10 @@ class MatteConfig:
     room_min_px: int = 20          # room pixels a predicted colour needs for its own noise level
     # Matte at 2x where the crop window has this many source px per crop px (crops.matte_scale).
     supersample_between: tuple[float, float] = (1.0, 6.0)
+    # At 2x: how many source pixels resampling spreads the outline over, and the band's ramp
+    # (crops.matte_config_at).
+    supersampled_spread: float = 2.0
+    supersampled_ramp: tuple[float, float] = (0.25, 0.75)
 
 
 def sphere_disc(size: int, fill: float, margin: float = 1.0) -> np.ndarray:
@@ -193,7 +198,8 @@ def rim_alpha(I: np.ndarray, B: np.ndarray, F: np.ndarray, min_off: float) -> tu
 
 
 def _edge_alpha(observed: np.ndarray, predicted: np.ndarray, core: np.ndarray, edge_px: int,
-                gain: float = 1.0, rim_min_off: float = np.inf) -> np.ndarray:
+                gain: float = 1.0, rim_min_off: float = np.inf,
+                ramp: tuple[float, float] = (0.0, 1.0)) -> np.ndarray:
     """Fractional alpha (H, W) float32 in a band around ``core`` by the compositing equation.
 
     With the object's colour F taken from the nearest surely-inside pixel and the background
@@ -202,7 +208,8 @@ def _edge_alpha(observed: np.ndarray, predicted: np.ndarray, core: np.ndarray, e
     as part room (against the true coverage the plain equation runs 0.03-0.1 low on fractional
     pixels of the synthetic captures; 1.25 leaves -0.01 to +0.04). Where the room's colour lies
     off the object's shading line (``rim_min_off``, :func:`rim_alpha`), the shaded rim is
-    modelled instead: the rim's shading then costs nothing.
+    modelled instead: the rim's shading then costs nothing. ``ramp`` (lo, hi) steepens the
+    band's alpha, lo and below to 0, hi and above to 1 (:func:`~.object.matte_config_at`).
     """
     from scipy.ndimage import distance_transform_edt
 
@@ -232,7 +239,8 @@ def _edge_alpha(observed: np.ndarray, predicted: np.ndarray, core: np.ndarray, e
     if np.isfinite(rim_min_off):
         rim, holds = rim_alpha(I, B, F, rim_min_off)
         a = np.where(holds, rim, a)
-    alpha[band] = a
+    lo, hi = ramp
+    alpha[band] = np.clip((a - lo) / (hi - lo), 0, 1)
     return alpha
 
 
@@ -441,7 +449,7 @@ def matte_and_noise(observed: np.ndarray, predicted: np.ndarray, disc: np.ndarra
         for _ in range(3):
             kept = cv2.dilate(kept, np.ones((3, 3), np.uint8)) & core
         core = _fill_holes(kept.astype(bool))
-    alpha = _edge_alpha(observed, predicted, core, cfg.edge_px, cfg.edge_gain, cfg.rim_min_off) * disc
+    alpha = _edge_alpha(observed, predicted, core, cfg.edge_px, cfg.edge_gain, cfg.rim_min_off, cfg.edge_ramp) * disc
     alpha[alpha < 0.02] = 0
     return straight_rgba(observed, predicted, alpha), measured, detail
 

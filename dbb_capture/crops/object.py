@@ -54,12 +54,25 @@ def matte_scale(windows_px: np.ndarray, size: int, between: tuple[float, float])
     return 2 if between[0] <= ratio < between[1] else 1
 
 
-def matte_config_at(cfg, scale: int):
+def matte_config_at(cfg, scale: int, cam: CropCamera):
     """The matte's settings (:class:`~dbb_capture.crops.matte.MatteConfig`) for a crop at ``scale`` x
-    the output size: the fractional band at the outline stays one output pixel wide (at 2x with a
-    2-px band, alpha IoU +0.004 to +0.011 over a 1-px band). The other pixel sizes stay as they
-    are: the 1-px shift tolerance doubled lost 0.002-0.011."""
-    return cfg if scale == 1 else replace(cfg, edge_px=cfg.edge_px * scale)
+    the output size, cut by ``cam`` (at that scale).
+
+    The doubled crop is resampled footage: its outline is spread over about
+    ``supersampled_spread`` source pixels, and averaging down would spread it again. So the
+    fractional band reaches that far to each side of the decided outline (at least one output
+    pixel, as at 1x) and its alpha is steepened by ``supersampled_ramp``: the 2x outline is nearly
+    sharp at the half-coverage line and averaging down alone makes the output's fractional
+    pixels. Against the truth on white (first-pass crops): a 960x720 capture's 320 px crops, one
+    source px a crop px (a 4-px band at 2x), 29.47 to 31.03 dB, the band without the ramp 30.38;
+    64 px crops at 1.7-3.2 source px a crop px (a 2-px band) +0.15 to +0.42 dB, where a 3-px band
+    lost 0.6-0.9 (docs/decisions.md, supersampled matte outline). The other pixel sizes stay as
+    they are: the 1-px shift tolerance doubled lost 0.002-0.011 alpha IoU.
+    """
+    if scale == 1:
+        return cfg
+    band = max(cfg.edge_px * scale, round(cfg.supersampled_spread * cam.intr.width / cam.window_px))
+    return replace(cfg, edge_px=band, edge_ramp=cfg.supersampled_ramp)
 
 
 def _area_down(image: np.ndarray, size: int) -> np.ndarray:
@@ -106,9 +119,9 @@ def object_crop(image: np.ndarray, src: Intrinsics, c2w: np.ndarray, center: np.
     """
     from .matte import MatteConfig, matte_and_noise, sphere_disc
 
-    mcfg = matte_config_at(matte_cfg or MatteConfig(), scale)
     n = size * scale
     cam = crop_camera(c2w, src, center, radius, up, n, fill)
+    mcfg = matte_config_at(matte_cfg or MatteConfig(), scale, cam)
     observed, touched = cut_crop(image, cam, src, c2w)
     predicted = predict(cam)
     guess = guessed(cam) if guessed is not None else None
@@ -125,7 +138,7 @@ def rematte(oc: ObjectCrop, fill: float, capture, matte_cfg=None) -> np.ndarray:
     (``capture``: :class:`~dbb_capture.crops.matte.CaptureMatte`), clipped to the frame like the first."""
     from .matte import MatteConfig, matte, sphere_disc
 
-    mcfg = matte_config_at(matte_cfg or MatteConfig(), oc.scale)
+    mcfg = matte_config_at(matte_cfg or MatteConfig(), oc.scale, oc.cam)
     disc = sphere_disc(oc.observed.shape[0], fill, mcfg.disc_margin)
     alpha = matte(oc.observed, oc.predicted, disc, mcfg, oc.guessed, capture)[..., 3]
     return np.minimum(alpha, oc.inside) if oc.inside is not None else alpha

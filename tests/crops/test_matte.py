@@ -281,9 +281,10 @@ def test_noise_map_keeps_a_mispredicted_wall_out_of_the_object():
     assert (per_colour & wall & ~obj).sum() < 5 and iou(per_colour) > 0.97
 
 
-def test_edge_gain_scales_the_compositing_alpha_of_mixed_pixels():
+def test_edge_gain_and_ramp_map_the_compositing_alpha_of_mixed_pixels():
     """A shaded rim reads as part room: the compositing alpha of the band's mixed pixels is
-    scaled by ``gain`` (clipped to 1); inside and hard-decided pixels keep 1 / 0."""
+    scaled by ``gain`` (clipped to 1), or steepened by ``ramp``; inside and hard-decided pixels
+    keep 1 / 0."""
     from dbb_capture.crops.matte import _edge_alpha
 
     F, B = np.array([60.0, 90.0, 220.0]), np.array([200.0, 170.0, 120.0])
@@ -298,6 +299,9 @@ def test_edge_gain_scales_the_compositing_alpha_of_mixed_pixels():
     assert np.allclose(plain[4:12, 8], 0.4, atol=0.02) and np.allclose(gained[4:12, 8], 0.5, atol=0.025)
     assert (gained[:, :6] == 1).all() and (gained[:, 10:] == 0).all()
     assert np.allclose(gained[plain < 1], np.minimum(1, 1.25 * plain[plain < 1]), atol=1e-6)
+    ramped = _edge_alpha(obs.astype(np.uint8), pred, core, 1, 1.0, ramp=(0.25, 0.75))
+    assert np.allclose(ramped[4:12, 8], 0.3, atol=0.04)            # (0.4 - 0.25) / 0.5
+    assert (ramped[:, :6] == 1).all() and (ramped[:, 10:] == 0).all()
 
 
 def test_shaded_rim_alpha_recovers_the_coverage_where_the_plain_equation_runs_low():

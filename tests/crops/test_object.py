@@ -7,6 +7,7 @@ import numpy as np
 from dbb_capture.crops.camera import crop_camera, cut_crop
 from dbb_capture.crops.object import (
     at_output,
+    matte_config_at,
     matte_scale,
     object_crop,
     premultiplied_down,
@@ -57,3 +58,20 @@ def test_object_crop_at_twice_the_size_averages_down_to_the_output_crop():
     truth = cut_crop(rgba, cam, SRC, c2w)[0][..., 3] > 127
     got = out.rgba[..., 3] > 127
     assert (truth & got).sum() / (truth | got).sum() > 0.95
+
+
+def test_matte_config_at_twice_the_size_spreads_the_band_over_the_resampled_outline():
+    """At 2x the fractional band reaches ``supersampled_spread`` source pixels to each side (at
+    least one output pixel) and is ramped; at 1x the settings are untouched."""
+    from dataclasses import replace
+
+    from dbb_capture.crops.matte import MatteConfig
+
+    cfg = MatteConfig()
+    cam = crop_camera(camera_pose(np.zeros(3), 10, 40, 0.6, -4), SRC, np.zeros(3), 0.1, UP, size=64, fill=0.9)
+    fine = replace(cam, intr=replace(cam.intr, width=640, height=640), window_px=327.0)   # 1 source px a crop px
+    coarse = replace(cam, intr=replace(cam.intr, width=128, height=128), window_px=205.0)  # 3.2 source px a crop px
+    assert matte_config_at(cfg, 1, cam) is cfg
+    at_fine, at_coarse = matte_config_at(cfg, 2, fine), matte_config_at(cfg, 2, coarse)
+    assert at_fine.edge_px == 4 and at_coarse.edge_px == 2
+    assert at_fine.edge_ramp == at_coarse.edge_ramp == cfg.supersampled_ramp != (0.0, 1.0)
