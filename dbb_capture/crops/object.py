@@ -64,9 +64,9 @@ def matte_config_at(cfg, scale: int, cam: CropCamera):
     pixel, as at 1x) and its alpha is steepened by ``supersampled_ramp``: the 2x outline is nearly
     sharp at the half-coverage line and averaging down alone makes the output's fractional
     pixels. Against the truth on white (first-pass crops): a 960x720 capture's 320 px crops, one
-    source px a crop px (a 4-px band at 2x), 29.47 to 31.03 dB, the band without the ramp 30.38;
+    source px a crop px (a 4-px band at 2x), 29.47 to 30.95 dB, the band without the ramp 30.38;
     64 px crops at 1.7-3.2 source px a crop px (a 2-px band) +0.15 to +0.42 dB, where a 3-px band
-    lost 0.6-0.9 (docs/decisions.md, supersampled matte outline). The other pixel sizes stay as
+    lost 0.7-1.0 (docs/decisions.md, supersampled matte outline). The other pixel sizes stay as
     they are: the 1-px shift tolerance doubled lost 0.002-0.011 alpha IoU.
     """
     if scale == 1:
