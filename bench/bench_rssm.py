@@ -179,7 +179,7 @@ def new_path(run: Path, dataset: Path, capture: Path, shifts: tuple[float, ...] 
 
     Several shifts: "near" along a new path is the footage at the very view but another moment,
     so it scores well where that moment happens to show the swinging parts in the same phase; one
-    shift is one draw of that coincidence (on three captures near varied by 1.1-2.1 dB between
+    shift is one draw of that coincidence (on three captures near varied by 1.1-2.2 dB between
     shifts 0.25, 0.5 and 0.75)."""
     from dbb_capture.dynamic.evaluate import view_angle_deg
     from dbb_capture.octree.render import TreeRenderer
