@@ -24,7 +24,8 @@
              synthetic capture's truth: the footage's viewpoints a quarter, half and three
              quarters of the capture later (--shift), at the test windows' times, pooled and
              each; the camera turning back from each window's first view; the footage's own
-             path rendered from the truth and the run's test windows; step-1 PSNR against the given first frame
+             path rendered from the truth and the run's test windows; step-1 PSNR against the
+             given first frame
              .venv/bin/python bench/bench_rssm.py new-path rssm_run dyn_ds --capture sample_data/dynamic
     blurred-copy: what copy-first blurred more at each step (a hedge that never moves) scores
              .venv/bin/python bench/bench_rssm.py blurred-copy dyn_ds --sigma 0.5 --sigma 1
@@ -202,16 +203,14 @@ def new_path(run: Path, dataset: Path, capture: Path, shifts: tuple[float, ...] 
     sets = {"own_crops": (data.rgba[idx], own_views),
             "own_path_truth": (path_truth(dataset, capture, times, own_views), own_views),
             "reversed_path_truth": (path_truth(dataset, capture, times, back), back)}
-    turns = []
+    shifted = {}
     for shift in shifts:
         moved = (starts[:, None] + int(round(shift * n))) % (n - L + 1) + np.arange(L)[None]
         new_views = data.views[moved].copy()
         new_views[..., 2] = own_views[..., 2]      # the same distance: only the direction is new
-        sets[f"new_path_shift_{shift:g}"] = (path_truth(dataset, capture, times, new_views), new_views)
-        turns.append(view_angle_deg(new_views, own_views))
-    out = {"run": str(run), "temperature": temperature, "windows": len(starts), "steps": L - 1,
-           "shifts": list(shifts), "new_path_turn_deg": round(float(np.median(turns)), 2)}
-    for name, (truth, views) in sets.items():
+        shifted[f"{shift:g}"] = (path_truth(dataset, capture, times, new_views), new_views)
+
+    def scored(truth: np.ndarray, views: np.ndarray) -> dict:
         ps, _, figs = score_rollouts(stepper, data, truth, views, seed)
         m = {k: round(float(np.mean(v)), 3) for k, v in ps.items()}
         if tree is not None:
@@ -219,8 +218,13 @@ def new_path(run: Path, dataset: Path, capture: Path, shifts: tuple[float, ...] 
             m["anchor"] = round(float(np.mean([psnr(a[w, t], figs["truth"][w, t + 1])
                                                for w in range(len(starts)) for t in range(L - 1)])), 3)
         step1 = float(np.mean([psnr(figs["methods"]["model"][w, 0], figs["truth"][w, 0]) for w in range(len(starts))]))
-        out[name] = _path_figures(m, step1, figs["near_gap_deg"])
-    by_shift = {f"{s:g}": out.pop(f"new_path_shift_{s:g}") for s in shifts}
+        return _path_figures(m, step1, figs["near_gap_deg"])
+
+    turns = [view_angle_deg(views, own_views) for _, views in shifted.values()]
+    out = {"run": str(run), "temperature": temperature, "windows": len(starts), "steps": L - 1,
+           "shifts": list(shifts), "new_path_turn_deg": round(float(np.median(turns)), 2)}
+    out.update({name: scored(truth, views) for name, (truth, views) in sets.items()})
+    by_shift = {name: scored(truth, views) for name, (truth, views) in shifted.items()}
     # Every shift scores as many windows: the pooled means are the means of theirs.
     pooled = {k: round(float(np.mean([b["mean_psnr_db"][k] for b in by_shift.values()])), 3)
               for k in next(iter(by_shift.values()))["mean_psnr_db"]}
