@@ -190,7 +190,7 @@ def new_path(run: Path, dataset: Path, capture: Path, shifts: tuple[float, ...] 
     model, data = run_data(run, dataset)
     if temperature is None:
         temperature = RunRecord.read(run).stepper.temperature
-    stepper = Stepper(model, temperature, data.atlas)
+    stepper = run_stepper(run, model, data, temperature)
     starts = data.starts("test")
     if len(starts) > windows:
         starts = starts[np.linspace(0, len(starts) - 1, windows).round().astype(int)]
@@ -247,6 +247,12 @@ def run_data(run: Path, dataset: Path, model: Rssm | None = None) -> tuple[Rssm,
     return (own if model is None else model).eval(), data
 
 
+def run_stepper(run: Path, model: Rssm, data: SequenceData, temperature: float) -> Stepper:
+    """The eager stepper of ``model`` as the run samples at run time, at ``temperature`` (the run's
+    temperature warm-up, its view anchor)."""
+    return Stepper(model, temperature, data.atlas, RunRecord.read(run).stepper.warmup)
+
+
 def with_settings(model: Rssm, settings: list[str]) -> Rssm:
     """``model`` rebuilt with other settings (``NAME=VALUE``) and the same weights: for settings
     that leave the weights' shapes alone, e.g. ``warp_leak`` tried on a model trained with another."""
@@ -266,7 +272,7 @@ def evaluate(run: Path, dataset: Path, still: dict | None, temperature: float, n
     ck = run / "checkpoint.pt"
     history = torch.load(ck, weights_only=False)["history"] if ck.is_file() else []
     kw = {} if still is None else {"still_truth": still["truth"], "still_start": (still["first"], still["view"])}
-    ev = run_eval(model, data, run / name, history, temperature=temperature, **kw).to_json()
+    ev = run_eval(model, data, run / name, history, temperature, RunRecord.read(run).stepper.warmup, **kw).to_json()
     return {"temperature": temperature, "mean_psnr_db": ev["mean_psnr_db"], "psnr_gain_db": ev["psnr_gain_db"],
             "mean_ssim": ev["mean_ssim"], "psnr_per_step": ev["psnr_db"], "motion": ev["motion"],
             "report": str(run / name)}
@@ -283,7 +289,7 @@ def train_test_gap(run: Path, dataset: Path, temperature: float, windows: int = 
     out = {}
     for split in ("train", "test"):
         sub = replace(data, windows=[(s, "test") for s, sp in data.windows if sp == split])
-        rep, _ = evaluate_stepper(Stepper(model, temperature, data.atlas), sub, max_windows=windows, rollout_steps=3)
+        rep, _ = evaluate_stepper(run_stepper(run, model, data, temperature), sub, max_windows=windows, rollout_steps=3)
         out[split] = round(rep.mean("psnr", "model") - rep.mean("psnr", "copy_first"), 3)
     return out
 
@@ -370,7 +376,7 @@ def protocols(run: Path, dataset: Path, samples: int = 8, temperature: float = 1
     runs = []
     for i in range(samples):
         torch.manual_seed(i)
-        runs.append(premultiply(rollout(Stepper(model, temperature, data.atlas), first, views)).numpy())
+        runs.append(premultiply(rollout(run_stepper(run, model, data, temperature), first, views)).numpy())
     runs = np.stack(runs)                                                   # (N, W, T, 4, S, S)
 
     def window_psnr(pred: np.ndarray) -> np.ndarray:                        # (W, T, ...) -> (W,) mean over steps
@@ -450,7 +456,7 @@ def motion(run: Path, dataset: Path, still: dict, temperatures: list[float] = (0
         rows = []
         for s in range(samples if temp > 0 else 1):
             torch.manual_seed(s + 1)
-            long = premultiplied(rollout(Stepper(model, temp, data.atlas), f0, views)[0].permute(0, 2, 3, 1).numpy())
+            long = premultiplied(rollout(run_stepper(run, model, data, temp), f0, views)[0].permute(0, 2, 3, 1).numpy())
             p_e = np.abs(np.diff(long.astype(np.float64), axis=0)).mean(axis=(1, 2, 3))
             coh = motion_coherence(long)
             path = centroids(long, background)
@@ -467,7 +473,7 @@ def motion(run: Path, dataset: Path, still: dict, temperatures: list[float] = (0
     x, v = window_batch(data, starts, torch.device("cpu"))                              # premultiplied
     torch.manual_seed(0)
     first = torch.from_numpy(data.rgba[starts]).permute(0, 3, 1, 2).float() / 255.0
-    pred = premultiply(rollout(Stepper(model, 1.0, data.atlas), first, v))
+    pred = premultiply(rollout(run_stepper(run, model, data, 1.0), first, v))
     seq = torch.cat([x[:, :1], pred], 1).numpy()
     e = lambda a: np.abs(np.diff(a.astype(np.float64), axis=1)).mean(axis=(0, 2, 3, 4))
     out["test_windows_ratio_per_step"] = [round(float(a / b), 3) for a, b in zip(e(seq), e(x.numpy()))]

@@ -163,7 +163,8 @@ def build_dynamic(run: Path, rec, tmp: Path, dataset: Path | None, prog) -> Mani
         kind="dynamic",
         model={"type": "rssm", "file": "model/stepper.ts", "format": "TorchScript",
                "weights": "model/rssm.pt", "api": rec.stepper.to_json()["api"],
-               "temperature": rec.stepper.temperature, "fps": rec.stepper.fps,
+               "temperature": rec.stepper.temperature, "temperature_warmup_steps": rec.stepper.warmup,
+               "fps": rec.stepper.fps,
                **({"anchor": {"file": "model/anchor.npz", "format": "svox N3Tree npz",
                               "note": "the view anchor: a PlenOctree of the capture's mean shape, whose renders "
                                       "the stepper reads (stepper.ts carries them as an atlas)"}}

@@ -40,6 +40,10 @@ class SequenceData:
     def starts(self, split: str) -> np.ndarray:
         return np.array([s for s, sp in self.windows if sp == split], dtype=np.int64)
 
+    def horizon(self) -> int:
+        """Open-loop steps a window trains (``length`` - 1): the stepper's temperature warm-up."""
+        return self.length - 1
+
     def fixed_camera(self) -> bool:
         """Whether every frame has the same viewpoint (preprocess's fixed-camera mode)."""
         return bool(np.ptp(self.views[:, :2], 0).max() < 1e-3)
@@ -129,15 +133,25 @@ def training_windows(data: SequenceData, horizon: int | None) -> tuple[np.ndarra
 
 
 def long_training_runs(data: SequenceData, steps: int, count: int) -> tuple[np.ndarray, int]:
-    """Up to ``count`` evenly spread starts of runs of 1 + ``steps`` consecutive training frames,
-    and that length; shorter runs (down to the dataset's window) when the footage has none."""
+    """``count`` evenly spread starts of runs of consecutive training frames, and their length: the
+    longest (at most 1 + ``steps``, at least the dataset's window) at which ``count`` starts lie a
+    window's length apart or more, so they see different views and moments (footage with gaps
+    may have one long run, where ``count`` starts a frame apart would be one view); when no length
+    has that many, the length with the most (the longest of those)."""
+    best = (0, np.zeros(0, np.int64), 0)
     for length in range(min(steps + 1, len(data.times)), data.length - 1, -1):
-        starts = np.array([s for s, sp in sequence_windows(data.times, data.splits, length) if sp == "train"],
-                          dtype=np.int64)
-        if len(starts):
-            pick = np.linspace(0, len(starts) - 1, min(count, len(starts))).round().astype(int)
-            return starts[np.unique(pick)], length
-    return np.zeros(0, np.int64), 0
+        apart = []
+        for s, sp in sequence_windows(data.times, data.splits, length):
+            if sp == "train" and (not apart or s >= apart[-1] + data.length):
+                apart.append(s)
+        if len(apart) > best[0]:
+            best = (len(apart), np.array(apart, np.int64), length)
+        if len(apart) >= count:
+            break
+    _, starts, length = best
+    if len(starts) > count:
+        starts = starts[np.unique(np.linspace(0, len(starts) - 1, count).round().astype(int))]
+    return starts, length
 
 
 def batch(data: SequenceData, starts: np.ndarray, device: torch.device,

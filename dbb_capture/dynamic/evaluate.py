@@ -27,7 +27,9 @@ from .stepper import Stepper, rollout
 # the band at 1.3, another's moved 1.5-1.6x the truth at 1 and 1.8-2.0x at 1.3.
 RUN_TEMPERATURE = 1.0
 # Temperatures the calibration tries (the fit interpolates between them and stays inside them).
-CALIBRATION_TEMPERATURES = (0.25, 0.5, 1.0, 1.5, 2.0, 3.0)
+# Above 3 the first steps' noise cost new-path PSNR until the stepper's warm-up kept them as
+# trained (docs/decisions.md, "temperatures above 3").
+CALIBRATION_TEMPERATURES = (0.25, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 5.0)
 
 
 def motion_energy(frames: np.ndarray) -> float:
@@ -228,7 +230,8 @@ class Calibration:
     """The run-time temperature fitted to the footage (:func:`calibrate_temperature`).
 
     Energies are mean absolute changes per step of premultiplied RGBA frames (as
-    :func:`motion_energy`), over ``steps``-step runs from the training frames ``starts``.
+    :func:`motion_energy`): the open loop's over ``steps`` steps from the training frames
+    ``starts``, the footage's over the ``target_steps`` that follow each of them.
     """
 
     temperature: float
@@ -237,13 +240,14 @@ class Calibration:
     energy: dict[float, float]            # still-view open-loop energy at each temperature tried
     starts: list[int]
     steps: int
+    target_steps: int = 0
     note: str | None = None
 
     def to_json(self) -> dict:
         return {"temperature": round(self.temperature, 4),
                 "target_energy": None if self.target is None else round(self.target, 6),
                 "energy_by_temperature": {f"{t:g}": round(e, 6) for t, e in self.energy.items()},
-                "starts": self.starts, "steps": self.steps, "note": self.note}
+                "starts": self.starts, "steps": self.steps, "target_steps": self.target_steps, "note": self.note}
 
 
 @torch.no_grad()
@@ -283,11 +287,11 @@ def still_view_energy(model: Rssm, data: SequenceData, starts: np.ndarray, lengt
     first = first_frames(data, starts).repeat(samples, 1, 1, 1)
     views = torch.from_numpy(data.views[starts])[:, None].expand(-1, length, -1).repeat(samples, 1, 1)
     torch.manual_seed(seed)
-    frames = rollout(Stepper(model.cpu().eval(), temperature, data.atlas), first, views.contiguous())     # (B, T, 4, S, S)
+    frames = rollout(Stepper(model.cpu().eval(), temperature, data.atlas, data.horizon()), first, views.contiguous())     # (B, T, 4, S, S)
     return motion_energy(premultiply(frames.transpose(0, 1)).numpy())
 
 
-def calibrate_temperature(model: Rssm, data: SequenceData, steps: int = 150, count: int = 4, samples: int = 2,
+def calibrate_temperature(model: Rssm, data: SequenceData, steps: int = 150, count: int = 8, samples: int = 2,
                           temperatures: tuple[float, ...] = CALIBRATION_TEMPERATURES, seed: int = 0) -> Calibration:
     """The sampling temperature at which the open loop, at a still viewpoint, moves as much as
     the footage's own motion at a still viewpoint (:func:`still_view_target`).
@@ -298,10 +302,15 @@ def calibrate_temperature(model: Rssm, data: SequenceData, steps: int = 150, cou
     another), so no fixed temperature fits them all. The energies at ``temperatures`` are
     interpolated to meet the target; outside them the nearest one is kept (noted). Footage
     without a run of consecutive training frames gets :data:`RUN_TEMPERATURE`.
+
+    The target is measured on ``count`` runs of consecutive training frames (up to ``steps`` + 1
+    long, shorter where gaps cut the footage: several views and moments weigh more than one long
+    run, :func:`long_training_runs`); the open loop needs no footage and runs ``steps`` steps from
+    each run's first frame, with the stepper's warm-up (:meth:`SequenceData.horizon`).
     """
     starts, length = long_training_runs(data, steps, count)
     if len(starts) == 0:
-        return Calibration(RUN_TEMPERATURE, None, {}, [], 0,
+        return Calibration(RUN_TEMPERATURE, None, {}, [], 0, 0,
                            f"no run of {data.length} consecutive training frames: temperature {RUN_TEMPERATURE:g} kept")
     energy = {}
     with progress(transient=True) as prog:
@@ -309,7 +318,7 @@ def calibrate_temperature(model: Rssm, data: SequenceData, steps: int = 150, cou
         target = still_view_target(model, data, starts, length)
         for t in temperatures:
             prog.update(task, advance=1, info=f"temperature {t:g}")
-            energy[float(t)] = still_view_energy(model, data, starts, length, t, samples, seed)
+            energy[float(t)] = still_view_energy(model, data, starts, steps + 1, t, samples, seed)
         prog.update(task, advance=1)
     ts = np.array(sorted(energy))
     es = np.maximum.accumulate(np.array([energy[t] for t in ts]))     # interp needs it non-decreasing
@@ -320,4 +329,4 @@ def calibrate_temperature(model: Rssm, data: SequenceData, steps: int = 150, cou
         temp, note = float(ts[-1]), f"the open loop moves less than the footage even at temperature {ts[-1]:g}"
     else:
         temp = float(np.interp(target, es, ts))
-    return Calibration(temp, target, energy, [int(s) for s in starts], length - 1, note)
+    return Calibration(temp, target, energy, [int(s) for s in starts], steps, length - 1, note)

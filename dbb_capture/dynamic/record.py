@@ -34,16 +34,18 @@ class StepperRecord:
     fps: float | None                     # the footage's frame rate (one step a frame)
     temperature: float                    # run-time sampling temperature of the stochastic state
     temperature_calibration: dict | None  # how it was fitted (Calibration.to_json), None if set by hand
+    warmup: int = 0                       # steps over which the temperature rises to it (Stepper.step_temperature)
     file: str = "stepper.ts"
 
     def to_json(self) -> dict:
         return {"file": self.file, "format": "TorchScript", "api": dict(STEPPER_API), "view": STEPPER_VIEW,
                 "frame_size": self.frame_size, "fps": self.fps, "temperature": self.temperature,
-                "temperature_calibration": self.temperature_calibration}
+                "temperature_warmup_steps": self.warmup, "temperature_calibration": self.temperature_calibration}
 
     @classmethod
     def from_json(cls, d: dict) -> StepperRecord:
-        return cls(int(d["frame_size"]), d["fps"], float(d["temperature"]), d["temperature_calibration"], d["file"])
+        return cls(int(d["frame_size"]), d["fps"], float(d["temperature"]), d["temperature_calibration"],
+                   int(d.get("temperature_warmup_steps", 0)), d["file"])
 
 
 @dataclass

@@ -148,13 +148,14 @@ def write_run(out: Path, state: TrainState, data: SequenceData, dataset: Path, t
                     "anchor": None if data.atlas is None else data.atlas.state()}, tmp / "model.pt")
         if anchor is not None:
             shutil.copytree(anchor, tmp / ANCHOR_DIR, ignore=shutil.ignore_patterns("checkpoint.pt", ".*"))
-        script_stepper(model, temperature, data.atlas).save(str(tmp / "stepper.ts"))
-        report = run_eval(model, data, tmp / "report", state.history, temperature=temperature)
+        script_stepper(model, temperature, data.atlas, data.horizon()).save(str(tmp / "stepper.ts"))
+        report = run_eval(model, data, tmp / "report", state.history, temperature, data.horizon())
         record = RunRecord(
             dataset=str(Path(dataset).resolve()), dataset_file=data.source.name,
             object=data.meta.get("object"), up=data.meta.get("up"),
             crop={"size": data.meta.get("crop_size"), "fill": data.meta.get("crop_fill")}, config=model.cfg,
-            stepper=StepperRecord(model.cfg.size, data.fps(), temperature, None if cal is None else cal.to_json()),
+            stepper=StepperRecord(model.cfg.size, data.fps(), temperature, None if cal is None else cal.to_json(),
+                                  data.horizon()),
             training=TrainingRecord(
                 steps=state.step, seconds=round(state.seconds + anchor_seconds, 1),
                 anchor_seconds=round(anchor_seconds, 1), last_wall_seconds=round(wall, 1),
@@ -168,10 +169,11 @@ def write_run(out: Path, state: TrainState, data: SequenceData, dataset: Path, t
 
 
 def run_eval(model: Rssm, data: SequenceData, folder: Path, history: list[dict],
-             temperature: float = RUN_TEMPERATURE, **kw) -> EvalReport:
-    """Evaluate ``model`` (sampling at ``temperature``) on ``data``; ``eval.json`` and figures into
-    ``folder``; ``kw`` as :func:`dbb_capture.dynamic.evaluate.evaluate`'s."""
-    report, figs = evaluate(Stepper(model.cpu().eval(), temperature, data.atlas), data, **kw)
+             temperature: float = RUN_TEMPERATURE, warmup: int = 0, **kw) -> EvalReport:
+    """Evaluate ``model`` (sampling at ``temperature``, reached after ``warmup`` steps: :class:`Stepper`)
+    on ``data``; ``eval.json`` and figures into ``folder``; ``kw`` as
+    :func:`dbb_capture.dynamic.evaluate.evaluate`'s."""
+    report, figs = evaluate(Stepper(model.cpu().eval(), temperature, data.atlas, warmup), data, **kw)
     folder.mkdir(parents=True, exist_ok=True)
     write_json(folder / "eval.json", report.to_json())
     write_figures(report, figs, history, folder)
@@ -215,9 +217,9 @@ def eval_run(run: Path, dataset: Path | None = None, temperature: float | None =
     """Evaluate a run folder again (on its own dataset unless ``dataset`` is given).
 
     Replaces ``report/`` and the ``eval`` entry of ``run.json``; a new ``temperature`` (or
-    ``calibrate``: fit it again, :func:`calibrate_temperature`) also replaces ``stepper.ts`` and the
-    stepper's temperature in ``run.json``. Each file is written aside and renamed into place,
-    run.json last.
+    ``calibrate``: fit it again, :func:`calibrate_temperature`, and the warm-up to the dataset's
+    horizon) also replaces ``stepper.ts`` and the stepper's temperature in ``run.json``. Each file
+    is written aside and renamed into place, run.json last.
     """
     run = Path(run)
     record = RunRecord.read(run)
@@ -225,20 +227,21 @@ def eval_run(run: Path, dataset: Path | None = None, temperature: float | None =
     ck = run / record.checkpoint
     history = read_checkpoint(ck).history if ck.is_file() else []
     stepper = record.stepper
+    warmup = stepper.warmup
     if calibrate:
         cal = calibrate_temperature(model, data)
-        temperature, stepper.temperature_calibration = cal.temperature, cal.to_json()
+        temperature, stepper.temperature_calibration, warmup = cal.temperature, cal.to_json(), data.horizon()
     elif temperature is None:
         temperature = stepper.temperature
     elif temperature != stepper.temperature:
         stepper.temperature_calibration = None          # set by hand
     with atomic_dir(run / "report", overwrite=True) as tmp:
-        report = run_eval(model, data, tmp, history, temperature=temperature)
-    if temperature != stepper.temperature:
+        report = run_eval(model, data, tmp, history, temperature, warmup)
+    if (temperature, warmup) != (stepper.temperature, stepper.warmup):
         ts = run / f".{stepper.file}.partial"
-        script_stepper(model, temperature, data.atlas).save(str(ts))
+        script_stepper(model, temperature, data.atlas, warmup).save(str(ts))
         ts.replace(run / stepper.file)
-        stepper.temperature = temperature
+        stepper.temperature, stepper.warmup = temperature, warmup
     record.eval = report.to_json()
     record.write(run)
     return report

@@ -3,7 +3,10 @@
 Frames in and out are straight RGBA (B, 4, S, S) in [0, 1]; views (B, 3) [azimuth_deg,
 elevation_deg, distance_m] (crops.json ``viewpoint``). A model with a view anchor carries its
 atlas (:class:`dbb_capture.dynamic.anchor.ViewAtlas`) inside, so ``stepper.ts`` needs nothing else. The stochastic state is sampled, not
-replaced by its mean (the mean settles within ~30 steps).
+replaced by its mean (the mean settles within ~30 steps). A temperature above 1 makes up for
+the prior's motion fading past the horizon it was trained on; within that horizon (``warmup``
+steps) the temperature rises from the prior as trained (1, or the temperature if lower) to it,
+so the first steps, which the training's open loop covered, are not made noisier than trained.
 """
 
 from __future__ import annotations
@@ -27,13 +30,14 @@ class Stepper(LatentStep):
     frame (and its encoder maps) as the context of the following steps, so one stepper runs one
     rollout (batch) at a time.
     ``step(h, z, view) -> (h, z, rgba)``: advance one frame (the transition ignores ``view``),
-    sample the stochastic state (``temperature`` scales its std; 0 gives the mean) and decode
-    the next frame as seen from ``view``.
+    sample the stochastic state (``temperature`` scales its std; 0 gives the mean; see
+    :meth:`step_temperature` for the first ``warmup`` steps) and decode the next frame as seen
+    from ``view``.
     ``observe(h, z, rgba, view) -> (h, z)`` and ``decode(h, z, view) -> rgba``: filtering instead of
     forecasting, and the frame of any state.
     """
 
-    def __init__(self, model: Rssm, temperature: float = 1.0, atlas: ViewAtlas | None = None):
+    def __init__(self, model: Rssm, temperature: float = 1.0, atlas: ViewAtlas | None = None, warmup: int = 0):
         super().__init__()
         if model.cfg.anchor and atlas is None:
             raise DbbError("this RSSM reads a view anchor: the stepper needs its atlas (the run's model.pt)")
@@ -50,6 +54,8 @@ class Stepper(LatentStep):
         self.min_std = float(model.cfg.min_std)
         self.deter = int(model.cfg.deter)
         self.temperature = float(temperature)
+        self.warmup = int(warmup)           # steps of the temperature's rise (the trained horizon)
+        self.t = 0                          # steps since start()
         self.ctx = []                       # the context frame's encoder maps, set by start()
         self.ctx_pm = torch.zeros(0)        # its premultiplied pixels
         self.warp = torch.zeros(0)          # the last frame's warp, set by start(), step()
@@ -69,8 +75,9 @@ class Stepper(LatentStep):
             self.ctx_anchor = image_pyramid(self.atlas(view), self.levels)
         self.warp = self.decoder.grid.expand(rgba.shape[0], -1, -1, -1).to(rgba.dtype)
         h = torch.zeros(rgba.shape[0], self.deter, dtype=rgba.dtype, device=rgba.device)
+        self.t = 0
         mean, std = self.post_stats(h, emb, self.encode_view(view))
-        return h, sample(mean, std, self.temperature)
+        return h, sample(mean, std, self.step_temperature())
 
     def _decode(self, h: torch.Tensor, z: torch.Tensor, view: torch.Tensor) -> torch.Tensor:
         """Straight RGBA (B, 4, S, S) of state (h, z) seen from ``view``; moves the accumulated warp on.
@@ -87,16 +94,28 @@ class Stepper(LatentStep):
         return straight(pm)
 
     @torch.jit.export
+    def step_temperature(self) -> float:
+        """The temperature of step ``t`` since start() (0: the context's posterior): from
+        min(1, temperature) at 0 linearly to ``temperature`` at step ``warmup``, then flat."""
+        first = min(1.0, self.temperature)
+        if self.t >= self.warmup:
+            return self.temperature
+        return first + (self.temperature - first) * float(self.t) / float(self.warmup)
+
+    @torch.jit.export
     def step(self, h: torch.Tensor, z: torch.Tensor, view: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        self.t += 1
         h = self.transition(h, z)
         mean, std = self.prior_stats(h)
-        z = sample(mean, std, self.temperature)
+        z = sample(mean, std, self.step_temperature())
         return h, z, self._decode(h, z, view)
 
     @torch.jit.export
     def observe(self, h: torch.Tensor, z: torch.Tensor, rgba: torch.Tensor, view: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Filtering instead of forecasting: the next state after seeing frame ``rgba`` (straight
-        RGBA (B, 4, S, S)) from ``view``, z the posterior's mean. Nothing is decoded."""
+        RGBA (B, 4, S, S)) from ``view``, z the posterior's mean. Nothing is decoded; the steps
+        that follow count from this frame (the warm-up starts again)."""
+        self.t = 0
         h = self.transition(h, z)
         mean, _std = self.post_stats(h, self.encoder(premultiply(rgba)), self.encode_view(view))
         return h, mean
@@ -110,9 +129,10 @@ class Stepper(LatentStep):
         return self.step(h, z, view)
 
 
-def script_stepper(model: Rssm, temperature: float = 1.0, atlas: ViewAtlas | None = None) -> torch.jit.ScriptModule:
+def script_stepper(model: Rssm, temperature: float = 1.0, atlas: ViewAtlas | None = None,
+                   warmup: int = 0) -> torch.jit.ScriptModule:
     """The TorchScript stepper of ``model`` with its view anchor ``atlas`` (on CPU, eval mode)."""
-    st = Stepper(model, temperature, atlas).cpu().eval()
+    st = Stepper(model, temperature, atlas, warmup).cpu().eval()
     st.ctx = torch.jit.Attribute([], List[torch.Tensor])     # TorchScript cannot type an empty list
     st.ctx_anchor = torch.jit.Attribute([], List[torch.Tensor])
     return torch.jit.script(st)

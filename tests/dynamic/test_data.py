@@ -63,8 +63,11 @@ def test_long_windows_are_runs_of_consecutive_training_frames(data):
     starts, length = training_windows(gapped, 30)
     assert length > 11 and len(starts) >= 30
     assert all(s + length <= 20 or s >= 20 for s in starts)
+    # Calibration runs: four starts a window (11) apart, so as long as that allows (18 frames).
     starts, length = long_training_runs(gapped, 150, 4)
-    assert length == 40 and list(starts) == [20]             # the longest run: frames 20-59
+    assert length == 18 and list(starts) == [0, 20, 31, 42]
+    starts, length = long_training_runs(gapped, 150, 1)
+    assert length == 40 and list(starts) == [20]             # one: the longest run, frames 20-59
 
 
 def test_augment_mirrors_and_reverses_whole_windows():

@@ -123,10 +123,12 @@ def test_the_mean_column_needs_an_eager_stepper():
 def test_calibrated_temperature_moves_the_still_view_as_much_as_the_footage(data, monkeypatch):
     m = moving_model()
     cal = calibrate_temperature(m, data, steps=20, count=2)
-    assert cal.steps >= data.length - 1 and len(cal.starts) >= 1
-    assert all(data.splits[s:s + cal.steps + 1].tolist() == ["train"] * (cal.steps + 1) for s in cal.starts)
+    # The target on runs of training frames; the open loop runs all the steps asked from their starts.
+    assert cal.steps == 20 and data.length - 1 <= cal.target_steps <= 20 and len(cal.starts) >= 1
+    assert all(data.splits[s:s + cal.target_steps + 1].tolist() == ["train"] * (cal.target_steps + 1) for s in cal.starts)
     starts, n = np.array(cal.starts), cal.steps + 1
-    assert cal.target == pytest.approx(still_view_target(m, data, starts, n))
+    assert cal.target == pytest.approx(still_view_target(m, data, starts, cal.target_steps + 1))
+    assert cal.energy[1.0] == pytest.approx(still_view_energy(m, data, starts, n, 1.0))
     es = [cal.energy[t] for t in sorted(cal.energy)]
     assert es[-1] > 1.2 * es[0]                     # sampling moves it
     # Footage between what the temperatures tried give: the fitted one meets it.

@@ -20,7 +20,7 @@ from .conftest import scaled
 
 def _record() -> RunRecord:
     return RunRecord("/data/ds", "crops.json", {"center": [0.0, 0.1, 0.2], "radius": 0.1}, [0.0, 0.0, -1.0],
-                     {"size": 64, "fill": 0.9}, scaled(energy=2.0), StepperRecord(32, 10.0, 0.5, None),
+                     {"size": 64, "fill": 0.9}, scaled(energy=2.0), StepperRecord(32, 10.0, 0.5, None, 10),
                      TrainingRecord(3, 1.5, 0.5, 2.0, None, 3, 2, 1e-3, "moving average", 0, 12, 0, {"step": 3}),
                      {"split": "train"})
 
@@ -33,8 +33,11 @@ def test_run_json_round_trip(tmp_path):
     assert doc["model"] == {"file": "model.pt", "type": "rssm", "config": doc["model"]["config"]}
     assert doc["model"]["config"]["loss_scales"]["energy"] == 2.0 and "selection" not in doc
     assert set(doc["stepper"]) == {"file", "format", "api", "view", "frame_size", "fps", "temperature",
-                                   "temperature_calibration"}
+                                   "temperature_warmup_steps", "temperature_calibration"}
     assert RunRecord.read(tmp_path) == rec
+    # A run written before the warm-up samples at its temperature from the first step.
+    del doc["stepper"]["temperature_warmup_steps"]
+    assert StepperRecord.from_json(doc["stepper"]).warmup == 0
 
 
 def test_older_runs_and_other_formats_are_refused_in_one_line(tmp_path):

@@ -41,6 +41,9 @@ def test_run_folder_cli_resume_and_eval(crops, tmp_path):
     assert torch.load(out / "model.pt", weights_only=False)["anchor"]["images"].shape[2:] == (4, 32, 32)
     cal = rec.stepper.temperature_calibration       # fitted to the footage by default
     assert cal["steps"] >= 10 and cal["temperature"] == rec.stepper.temperature
+    # The temperature is reached over the open-loop steps a training window covers.
+    assert rec.stepper.warmup == len(rec.eval["psnr_db"]["model"]) == 10
+    assert torch.jit.load(str(out / "stepper.ts")).warmup == 10
     assert rec.eval["split"] == "train" and len(rec.eval["psnr_db"]["model"]) == 10
     # The written model is the weights' average; the checkpoint keeps the last weights.
     ck = torch.load(out / "checkpoint.pt", weights_only=False)
@@ -60,7 +63,7 @@ def test_run_folder_cli_resume_and_eval(crops, tmp_path):
     r = CliRunner().invoke(cli.main, ["rssm-eval", str(out), "--temperature", "0.5"])
     assert r.exit_code == 0, r.output
     st = RunRecord.read(out).stepper
-    assert st.temperature == 0.5 and st.temperature_calibration is None     # set by hand
+    assert st.temperature == 0.5 and st.temperature_calibration is None and st.warmup == 10    # set by hand
     assert torch.jit.load(str(out / "stepper.ts")).temperature == 0.5
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run"] and not list(out.glob(".*"))
     r = CliRunner().invoke(cli.main, ["rssm-eval", str(out), "--calibrate"])

@@ -16,14 +16,15 @@ from dbb_capture.dynamic.stepper import Stepper, rollout, script_stepper
 from .conftest import ANCHORED, SMALL, moving_model, random_atlas, scaled
 
 
-def _eager_and_scripted(m: Rssm, tmp_path, batch: int = 2, steps: int = 6, atlas=None) -> tuple[torch.Tensor, torch.Tensor]:
+def _eager_and_scripted(m: Rssm, tmp_path, batch: int = 2, steps: int = 6, atlas=None,
+                        temperature: float = 1.0, warmup: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     """Rollouts of ``m`` (with its view anchor's ``atlas``) from the same random frame and views, with
     the same noise, through the eager stepper and through its saved and reloaded TorchScript."""
     path = tmp_path / "stepper.ts"
-    script_stepper(m, atlas=atlas).save(str(path))
+    script_stepper(m, temperature, atlas, warmup).save(str(path))
     first, views = torch.rand(batch, 4, 32, 32), torch.rand(batch, steps, 3) * 300 - 150
     torch.manual_seed(7)
-    eager = rollout(Stepper(m, atlas=atlas), first, views)
+    eager = rollout(Stepper(m, temperature, atlas, warmup), first, views)
     torch.manual_seed(7)
     return eager, rollout(torch.jit.load(str(path)), first, views)
 
@@ -45,6 +46,33 @@ def test_torchscript_matches_eager(tmp_path):
         assert eager.shape == (2, 5, 4, 32, 32) and torch.allclose(eager, scripted, atol=1e-5)
     assert float((eager[:, -1] - eager[:, 0]).abs().max()) > 0.05     # the frames do move
     assert torch.jit.load(str(tmp_path / "stepper.ts")).temperature == 1.0
+
+
+def test_the_temperature_rises_over_the_trained_horizon(tmp_path):
+    """From the prior as trained (1) at the context frame to the run-time temperature at step
+    ``warmup``, then flat; a temperature below 1 is never exceeded; start() and observe() count again."""
+    m = moving_model()
+    st = Stepper(m, 3.0, warmup=4)
+    first, view = torch.rand(1, 4, 32, 32), torch.zeros(1, 3)
+    h, z = st.start(first, view)
+    temps = [st.step_temperature()]
+    for _ in range(6):
+        h, z, _x = st.step(h, z, view)
+        temps.append(st.step_temperature())
+    assert temps == pytest.approx([1.0, 1.5, 2.0, 2.5, 3.0, 3.0, 3.0])
+    st.observe(h, z, first, view)
+    assert st.step_temperature() == 1.0
+    st.start(first, view)
+    assert st.step_temperature() == 1.0
+    cool = Stepper(m, 0.5, warmup=4)
+    cool.start(first, view)
+    assert cool.step_temperature() == 0.5
+    assert Stepper(m, 3.0).step_temperature() == 3.0            # no warm-up: flat
+    # TorchScript as eager, warm-up included; the warm-up changes the first steps' noise.
+    eager, scripted = _eager_and_scripted(m, tmp_path, temperature=3.0, warmup=4)
+    flat, _ = _eager_and_scripted(m, tmp_path / "..", temperature=3.0)
+    assert torch.allclose(eager, scripted, atol=1e-5) and not torch.allclose(eager[:, 0], flat[:, 0])
+    assert torch.jit.load(str(tmp_path / "stepper.ts")).warmup == 4
 
 
 def test_an_anchored_stepper_carries_its_atlas_and_draws_from_it(tmp_path):
