@@ -219,4 +219,5 @@ def _print_rssm(out: Path, record, what: str) -> None:
     cal = st.temperature_calibration
     console.print(f"run-time temperature {st.temperature:.3g}"
                   + ("" if cal is None else " (fitted to the footage's still-view motion"
-                     + (f"; {cal['note']}" if cal.get("note") else "") + ")"))
+                     + (f"; {cal['note']}" if cal.get("note") else "") + ")")
+                  + (f", reached over the first {st.warmup} steps" if st.warmup and st.temperature > 1 else ""))

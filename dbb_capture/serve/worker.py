@@ -180,7 +180,8 @@ class StaticCanvas:
 
 
 # The stepper's per-rollout attributes (dbb_capture.dynamic.stepper.Stepper): swapped per client.
-_STEPPER_STATE = ("ctx", "ctx_pm", "ctx_view", "warp", "prev_view")
+# ``t`` (steps since the first frame: the temperature's warm-up) is absent from older stepper.ts files.
+_STEPPER_STATE = ("ctx", "ctx_pm", "ctx_view", "warp", "prev_view", "t")
 
 
 @dataclass
@@ -213,9 +214,10 @@ class DynamicCanvas:
         self.first = rgba_tensor(read_rgba(b.file(m.inputs["first_frame"])), self.size)
         self.first_view = torch.as_tensor(np.asarray(m.inputs["first_view"], np.float32))[None]
         self.rollouts: dict[int, Rollout] = {}
+        self.state_keys = tuple(k for k in _STEPPER_STATE if hasattr(self.stepper, k))
 
     def _get(self) -> dict:
-        return {k: getattr(self.stepper, k) for k in _STEPPER_STATE}
+        return {k: getattr(self.stepper, k) for k in self.state_keys}
 
     def _set(self, state: dict) -> None:
         for k, v in state.items():
