@@ -170,9 +170,7 @@ def _train(task: StageTask):
     job, p = task.job, task.job.paths
     if not task.redo and run_complete(p.run, job.kind):
         return SKIPPED, "run complete", False, run_metrics(p.run)
-    resume = _resumable(task)
-    if not resume:
-        shutil.rmtree(run_work_dir(p.run), ignore_errors=True)
+    resume = _resumable(task)          # if not, the trainers' overwrite removes the old checkpoints
     clear_scratch(p.run)
     if job.kind == "static":
         from ..static.run import train_run

@@ -194,10 +194,20 @@ def resume_checkpoint(out: Path, name: str = "checkpoint.pt") -> Path:
 
 
 def check_run_output(out: Path, overwrite: bool, resume: bool) -> None:
-    """A training run may write ``out`` only if it is new, replaced (--overwrite) or resumed."""
-    if Path(out).exists() and not (overwrite or resume):
-        raise DbbError(f"{out} already exists (pass {{=overwrite}} to replace it, {{=resume}} to continue it)")
+    """A training run may write ``out`` only if it is new, replaced (--overwrite) or resumed; an
+    interrupted run's scratch folder (:func:`run_work_dir`) counts as the run. A replaced run's
+    scratch folder is removed here, so nothing of the old run (a checkpoint, a fitted part) is
+    taken for the new one's."""
+    work = run_work_dir(out)
+    if not (overwrite or resume):
+        if Path(out).exists():
+            raise DbbError(f"{out} already exists (pass {{=overwrite}} to replace it, {{=resume}} to continue it)")
+        if work.exists():
+            raise DbbError(f"an interrupted run of {out} is in {work} (pass {{=resume}} to continue it, "
+                           f"{{=overwrite}} to start again)")
     check_writable(out)
+    if overwrite and not resume and work.exists():
+        shutil.rmtree(work)
 
 
 def refuse_spent_budget(out: Path, steps: int | None, minutes: float | None) -> None:

@@ -91,3 +91,17 @@ def test_a_file_where_a_folder_should_be_is_refused_before_any_work(tmp_path):
         outputs.check_run_output(target, overwrite=False, resume=False)
     outputs.check_writable(tmp_path / "new" / "deeper" / "out")     # missing folders are made later
     assert sorted(p.name for p in tmp_path.iterdir()) == ["f"]      # and nothing was made here
+
+
+def test_an_interrupted_run_is_continued_or_replaced_never_taken_for_a_new_one(tmp_path):
+    out = tmp_path / "run"
+    work = outputs.run_work_dir(out)
+    (work / "anchor").mkdir(parents=True)
+    (work / "checkpoint.pt").write_bytes(b"an interrupted run's")
+    with pytest.raises(DbbError, match=r"an interrupted run of .*run is in .*\.run\.work"):
+        outputs.check_run_output(out, overwrite=False, resume=False)
+    outputs.check_run_output(out, overwrite=False, resume=True)
+    assert (work / "checkpoint.pt").is_file()                       # continued: kept
+    outputs.check_run_output(out, overwrite=True, resume=False)
+    assert not work.exists()                                        # replaced: nothing of it is reused
+    outputs.check_run_output(out, overwrite=False, resume=False)    # and a new run may start

@@ -114,6 +114,20 @@ def test_settings_presets_and_resumed_settings_on_the_command_line(crops, tmp_pa
     assert len(help_lines) <= 50
 
 
+def test_a_new_run_never_takes_an_interrupted_runs_view_anchor(crops, tmp_path):
+    from dbb_capture.core.outputs import run_work_dir
+
+    out = tmp_path / "run"
+    stale = run_work_dir(out) / "anchor"              # an interrupted run's fitted anchor, of other crops
+    stale.mkdir(parents=True)
+    (stale / "tree.npz").write_bytes(b"not this dataset's tree")
+    with pytest.raises(DbbError, match="an interrupted run"):
+        train_run(crops.root, out, replace(SMALL, anchor=True), TrainConfig(steps=1, batch=2), quiet=True)
+    rec = train_run(crops.root, out, replace(SMALL, anchor=True), TrainConfig(steps=1, batch=2), overwrite=True, quiet=True)
+    assert rec.config.anchor and (out / "anchor" / "tree.npz").stat().st_size > 100     # fitted afresh
+    assert not run_work_dir(out).exists()
+
+
 def test_training_rescales_the_warp_leak_to_the_footage_frame_rate(crops, tmp_path):
     # 0.1 a frame at 5 frames/s is 1 - 0.9 ** 0.5 a frame of the 10-fps fixture.
     out = tmp_path / "run"
