@@ -121,9 +121,10 @@ def test_a_new_run_never_takes_an_interrupted_runs_view_anchor(crops, tmp_path):
     stale = run_work_dir(out) / "anchor"              # an interrupted run's fitted anchor, of other crops
     stale.mkdir(parents=True)
     (stale / "tree.npz").write_bytes(b"not this dataset's tree")
+    cfg, tcfg = replace(SMALL, anchor=True), TrainConfig(steps=1, batch=2)
     with pytest.raises(DbbError, match="an interrupted run"):
-        train_run(crops.root, out, replace(SMALL, anchor=True), TrainConfig(steps=1, batch=2), quiet=True)
-    rec = train_run(crops.root, out, replace(SMALL, anchor=True), TrainConfig(steps=1, batch=2), overwrite=True, quiet=True)
+        train_run(crops.root, out, cfg, tcfg, quiet=True)
+    rec = train_run(crops.root, out, cfg, tcfg, overwrite=True, quiet=True)
     assert rec.config.anchor and (out / "anchor" / "tree.npz").stat().st_size > 100     # fitted afresh
     assert not run_work_dir(out).exists()
 
