@@ -7,11 +7,14 @@ core already). ``spawn``, not ``fork``: torch, PyAV and LibRaw threads do not su
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing as mp
 import os
 import queue as queue_mod
+import signal
+import threading
 from concurrent.futures import ProcessPoolExecutor
-from typing import Callable, Sequence, TypeVar
+from typing import Callable, Iterator, Sequence, TypeVar
 
 import numpy as np
 
@@ -69,6 +72,29 @@ def report(n: int = 1) -> None:
         _queue.put(n)
 
 
+@contextlib.contextmanager
+def signals_held(signums: Sequence[int] = (signal.SIGINT, signal.SIGTERM)) -> Iterator[None]:
+    """Hold ``signums`` while the block runs, then deliver any that came to the handlers in place
+    before it (main thread only; elsewhere a no-op, as Python runs handlers there only).
+
+    A stop that lands while a worker is being spawned would cut the pipe the parent writes its
+    start-up data to: the half-started child prints a traceback after the parent's last line, and
+    it is not yet among the pool's processes that the stop kills.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    came: list[int] = []
+    before = {s: signal.signal(s, lambda signum, frame: came.append(signum)) for s in signums}
+    try:
+        yield
+    finally:
+        for s, handler in before.items():
+            signal.signal(s, handler)
+        for s in dict.fromkeys(came):
+            signal.raise_signal(s)
+
+
 def split(indices: Sequence[int], parts: int) -> list[tuple[int, ...]]:
     """``indices`` cut into ``parts`` contiguous, nearly equal segments."""
     return [tuple(c.tolist()) for c in np.array_split(np.asarray(list(indices)), parts) if len(c)]
@@ -85,7 +111,8 @@ def map_spawned(fn: Callable[[T], R], tasks: Sequence[T], workers: int,
     q = ctx.Queue()
     pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init, initargs=(q, os.getpid()))
     try:
-        futures = [pool.submit(fn, t) for t in tasks]
+        with signals_held():        # the pool spawns its workers as the tasks are submitted
+            futures = [pool.submit(fn, t) for t in tasks]
         while True:
             try:
                 n = q.get(timeout=0.1)
