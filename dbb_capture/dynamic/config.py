@@ -32,6 +32,7 @@ LOSS_SCALES: dict[str, float] = {
     "first_step": 1.0,   # the run-time first step (frame 1 from a prior sample at h_1), scored on its own
     "sharp": 0.0,        # the open loop's sharpness matched to the truth's (losses.sharpness_match)
     "keypoints": 0.0,    # the state predicts its frame's keypoints (needs keypoints > 0)
+    "keypoint_spread": 0.0,  # the open loop's keypoints spread over time as the frames' do (needs keypoints)
     "energy": 0.0,       # the open loop's motion energy matched to the truth's (losses.energy_match)
 }
 
@@ -77,6 +78,11 @@ class RssmConfig:
                                    # a few pixels off worse than no part, so a decoder fed the state's uncertain
                                    # keypoints learns to leave the part where it was. The state's keypoints
                                    # (kp_head, trained by the keypoint loss) drive it at run time
+    keypoint_horizon: int | None = None  # the open loop's first this many steps score the state's
+                                   # keypoints against the frames' one by one (None: every step); beyond it
+                                   # the phase of a swing is unknown, the mean of its places scores best there
+                                   # and a prior trained to it settles (loss_scales.keypoint_spread keeps the
+                                   # swing's size)
     osc: int = 0                   # > 0: this many damped rotations (complex modes, LRU-style) take 2 x osc
                                    # of the deter units beside the GRU (OscCell): a state that rings at its
                                    # own frequency keeps a swing going after the trained horizon, where a
@@ -115,6 +121,10 @@ class RssmConfig:
             raise DbbError("RSSM loss_scales.keypoints needs {=keypoints} > 0")
         if self.keypoint_maps and self.scale("keypoints") <= 0:
             raise DbbError("RSSM {=keypoint_maps} needs loss_scales.keypoints > 0 (and {=keypoints} > 0)")
+        if self.scale("keypoint_spread") > 0 and self.scale("keypoints") <= 0:
+            raise DbbError("RSSM loss_scales.keypoint_spread needs loss_scales.keypoints > 0")
+        if self.keypoint_horizon is not None and self.keypoint_horizon < 1:
+            raise DbbError(f"RSSM {{=keypoint_horizon}} must be at least 1, not {self.keypoint_horizon}")
         if self.keypoint_teacher and not self.keypoint_maps:
             raise DbbError("RSSM {=keypoint_teacher} needs {=keypoint_maps}")
         if self.keypoint_map_std <= 0:
@@ -131,7 +141,8 @@ class RssmConfig:
             cfg = cls(**d)
         except TypeError as e:
             raise DbbError(f"not an RSSM model config of this version: {e}") from None
-        return replace(cfg, loss_scales=dict(cfg.loss_scales))
+        # A term added since the model was written was off for it (every new term is 0 by default).
+        return replace(cfg, loss_scales={**LOSS_SCALES, **cfg.loss_scales})
 
 
 @dataclass(frozen=True)
@@ -227,7 +238,7 @@ def setting_names() -> list[str]:
     return model + [f"loss_scales.{k}" for k in LOSS_SCALES] + train
 
 
-_OPTIONAL = {"dynamics_horizon"}          # settings that may be None ("none")
+_OPTIONAL = {"dynamics_horizon", "keypoint_horizon"}  # settings that may be None ("none")
 _KINDS = {bool: "true or false", int: "a whole number", float: "a number", str: "text"}
 
 

@@ -100,18 +100,38 @@ def sharpness_match(pred: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
     return ((diffs(pred).sort(-1).values - diffs(truth).sort(-1).values) ** 2).flatten(1).sum(1).mean()
 
 
+def state_keypoints(model: Rssm, states: States) -> torch.Tensor:
+    """``kp_head``'s reading (B, T, 2K) of a pass's states (T of (B, .)), in [-1, 1] frame units."""
+    return model.kp_head(torch.cat([torch.stack(states.h, 1), torch.stack(states.z, 1)], -1))
+
+
 def keypoint_error(model: Rssm, emb: torch.Tensor, filtering: States, open_loop: States, k: int) -> torch.Tensor:
     """The frames' keypoints (``emb`` (B, T+1, embed + 2K), detached) against ``kp_head``'s reading of
-    the filtering states (T+1 of (B, .)) and of the open loop's from frame ``k`` (T - k of (B, .)),
-    squared distances summed over keypoints, mean over frames: a target the warp's vanishing gradient
-    cannot hide, so the state carries where a small part is."""
+    the filtering states (T+1 of (B, .)) and of the open loop's from frame ``k`` (T - k of (B, .); its
+    first ``cfg.keypoint_horizon`` steps), squared distances summed over keypoints, mean over frames: a
+    target the warp's vanishing gradient cannot hide, so the state carries where a small part is."""
     kp = emb[:, :, model.cfg.embed:].detach()
-    kf = model.kp_head(torch.cat([torch.stack(filtering.h, 1), torch.stack(filtering.z, 1)], -1))
-    err = ((kf - kp) ** 2).sum(-1).mean()
+    err = ((state_keypoints(model, filtering) - kp) ** 2).sum(-1).mean()
     if not open_loop.h:
         return err
-    ko = model.kp_head(torch.cat([torch.stack(open_loop.h, 1), torch.stack(open_loop.z, 1)], -1))
-    return err + ((ko - kp[:, k + 1:]) ** 2).sum(-1).mean()
+    n = model.cfg.keypoint_horizon or len(open_loop.h)
+    ko = state_keypoints(model, States(h=open_loop.h[:n], z=open_loop.z[:n]))
+    return err + ((ko - kp[:, k + 1:k + 1 + n]) ** 2).sum(-1).mean()
+
+
+def keypoint_spread(model: Rssm, emb: torch.Tensor, open_loop: States, k: int, eps: float = 0.01) -> torch.Tensor:
+    """Squared log ratio of how far each keypoint ranges over the open loop from frame ``k`` (its std
+    over time, per sequence and coordinate, of ``kp_head``'s reading of T - k >= 2 states) and over the
+    frames' own (``emb`` (B, T+1, embed + 2K), detached), summed over coordinates, mean over the batch.
+
+    Blind to phase: past the steps whose keypoints are scored one by one (``keypoint_horizon``) a
+    swing may be anywhere on its arc, and this asks only that it range as far as the truth's does.
+    On the pendulum a prior trained without it settled to a point (keypoints ranging 0.3-1.1 px where
+    the frames' range 9 px); 400 steps of it on that prior's dynamics gave 9 px and the ball moved.
+    """
+    kp = emb[:, k + 1:, model.cfg.embed:].detach()
+    ko = state_keypoints(model, open_loop)
+    return ((torch.log(ko.std(1) + eps) - torch.log(kp.std(1) + eps)) ** 2).sum(-1).mean()
 
 
 def _dynamics_kl(f: States) -> torch.Tensor:
@@ -137,6 +157,17 @@ def _overshoot(f: States, open_loop: States, k: int) -> torch.Tensor:
     loop's priors from frame ``k``, mean over steps."""
     return torch.stack([kl_divergence(f.post_mean[t].detach(), f.post_std[t].detach(), pm, ps).mean()
                         for t, pm, ps in zip(range(k + 1, len(f.h)), open_loop.prior_mean, open_loop.prior_std)]).mean()
+
+
+def _keypoint_terms(terms: dict[str, torch.Tensor], model: Rssm, emb: torch.Tensor, f: States,
+                    ol: States, k: int) -> None:
+    """Add the keypoint terms (with ``kp_head``) of a pass to ``terms``: :func:`keypoint_error` and,
+    with its scale and an open loop of 2 or more steps, :func:`keypoint_spread`."""
+    if model.kp_head is None:
+        return
+    terms["keypoints"] = keypoint_error(model, emb, f, ol, k)
+    if model.cfg.scale("keypoint_spread") > 0 and len(ol.h) > 1:
+        terms["keypoint_spread"] = keypoint_spread(model, emb, ol, k)
 
 
 # --------------------------------------------------------------------------- the two losses
@@ -223,8 +254,7 @@ def loss_terms(model: Rssm, x: torch.Tensor, views: torch.Tensor,
             frames, t = torch.cat([first, frames], 1), torch.cat([t.new_ones(1), t])
         if cfg.scale("sharp") > 0:
             terms["sharp"] = sharpness_match(frames.flatten(0, 1), x[:, t].flatten(0, 1))
-    if model.kp_head is not None:
-        terms["keypoints"] = keypoint_error(model, b.emb, f, ol, k)
+    _keypoint_terms(terms, model, b.emb, f, ol, k)
     if decode_open_loop and cfg.scale("energy") > 0 and T1 - k - 1 > 1:
         terms["energy"] = energy_match(frames[:, n0:], x[:, k + 1:])
     return terms, info
@@ -268,9 +298,7 @@ def latent_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor,
     k = min(OPEN_LOOP_FROM, T1 - 2)
     ol = model.imagine(f.h[k], f.z[k], T1 - k - 1)
     terms = {"kl": cfg.kl_balance * dyn, "overshoot": _overshoot(f, ol, k)}
-    if model.kp_head is not None:
-        terms["keypoints"] = keypoint_error(model, emb, f, ol, k)
-    parts = {"kl_dyn": dyn.item(), "overshoot": terms["overshoot"].item()}
-    if "keypoints" in terms:
-        parts["keypoints"] = terms["keypoints"].item()
+    _keypoint_terms(terms, model, emb, f, ol, k)
+    parts = {"kl_dyn": dyn.item(), "overshoot": terms["overshoot"].item(),
+             **{n: terms[n].item() for n in ("keypoints", "keypoint_spread") if n in terms}}
     return weighted(terms, cfg.loss_scales), parts

@@ -26,7 +26,7 @@ from .conftest import SMALL, scaled
 
 def test_settings_by_name_take_their_types():
     names = setting_names()
-    assert len(names) <= 40 and len(set(names)) == len(names)
+    assert len(names) <= 44 and len(set(names)) == len(names)
     assert {f"loss_scales.{k}" for k in LOSS_SCALES} <= set(names)
     assert not {"size", "batch", "seed", "minutes", "steps", "loss_scales"} & set(names)   # options of their own
     cfg, tcfg = configs_from_settings(["warp_leak=0.05", "keypoints_frozen=true", "loss_scales.energy=100",
@@ -49,9 +49,10 @@ def test_presets_are_files_and_expand_under_later_settings():
     # The swing preset: keypoints, oscillator modes, latent-only steps on long windows, keypoint maps.
     assert read_preset("swing") == {
         "deter": 96, "osc": 16, "osc_keep_min": 0.999, "keypoints": 16, "keypoints_frozen": True,
-        "keypoint_maps": True, "keypoint_teacher": True, "warp_leak": 0.1, "warp_leak_fps": 10.0,
+        "keypoint_maps": True, "keypoint_teacher": True, "keypoint_horizon": 10, "warp_leak": 0.1, "warp_leak_fps": 10.0,
         "dynamics_steps": 1, "dynamics_horizon": 60,
-        "loss_scales.energy": 100.0, "loss_scales.sharp": 100.0, "loss_scales.keypoints": 100.0}
+        "loss_scales.energy": 100.0, "loss_scales.sharp": 100.0, "loss_scales.keypoints": 100.0,
+        "loss_scales.keypoint_spread": 100.0}
     assert cfg.keypoint_maps and cfg.keypoint_teacher and tcfg.dynamics_horizon == 60
     assert cfg.scale("sharp") == 100.0 and cfg.scale("rec") == 1.0
     cfg.validate()
@@ -91,6 +92,10 @@ def test_configs_read_back_and_older_ones_are_refused():
     assert back == cfg and back.loss_scales is not cfg.loss_scales
     with pytest.raises(DbbError, match="not an RSSM model config of this version"):
         RssmConfig.from_json({**asdict(SMALL), "compose": "accum"})
+    # A model written before a loss term existed trained without it: the term reads back as off.
+    old = asdict(scaled(energy=3.0))
+    del old["loss_scales"]["keypoint_spread"]
+    assert RssmConfig.from_json(old) == cfg
 
 
 def test_warp_leak_per_second_is_rescaled_to_the_footage_frame_rate():

@@ -13,6 +13,7 @@ from dbb_capture.dynamic.losses import (
     OPEN_LOOP_FROM,
     energy_match,
     keypoint_error,
+    keypoint_spread,
     latent_loss,
     loss_terms,
     motion_weights,
@@ -186,15 +187,54 @@ def test_keypoint_loss_makes_the_state_say_where_the_spot_is():
     assert "kp_head" not in "".join(Rssm(replace(SMALL, keypoints=4)).state_dict())
 
 
+def _states(n: int) -> States:
+    return States([torch.randn(2, 16, requires_grad=True) for _ in range(n)],
+                  [torch.randn(2, 16, requires_grad=True) for _ in range(n)])
+
+
 def test_keypoint_error_reads_the_filtering_and_the_open_loop_states():
     cfg = replace(scaled(keypoints=1.0), keypoints=4)
     m = Rssm(cfg)
-    f = States([torch.randn(2, 16, requires_grad=True) for _ in range(11)],
-                         [torch.randn(2, 16, requires_grad=True) for _ in range(11)])
-    ol = States([torch.randn(2, 16, requires_grad=True) for _ in range(9)],
-                          [torch.randn(2, 16, requires_grad=True) for _ in range(9)])
+    f, ol = _states(11), _states(9)
     keypoint_error(m, torch.randn(2, 11, cfg.embed + 8), f, ol, 1).backward()
     assert all(t.grad is not None for t in f.h + f.z + ol.h + ol.z)
+
+
+def test_keypoint_horizon_scores_the_open_loops_first_steps_alone():
+    cfg = replace(scaled(keypoints=1.0), keypoints=4, keypoint_horizon=3)
+    m = Rssm(cfg)
+    f, ol = _states(11), _states(9)
+    keypoint_error(m, torch.randn(2, 11, cfg.embed + 8), f, ol, 1).backward()
+    assert all(t.grad is not None for t in ol.h[:3] + ol.z[:3])
+    assert all(t.grad is None for t in ol.h[3:] + ol.z[3:])
+
+
+def test_keypoint_spread_asks_the_open_loop_to_range_as_far_as_the_frames():
+    cfg = replace(scaled(keypoints=1.0, keypoint_spread=1.0), keypoints=4)
+    m = Rssm(cfg)
+    torch.manual_seed(0)
+    emb = torch.randn(2, 11, cfg.embed + 8)
+    ol = _states(9)
+    with torch.no_grad():
+        reading = m.kp_head(torch.cat([torch.stack(ol.h, 1), torch.stack(ol.z, 1)], -1))
+    # Frames whose keypoints range as the open loop's reading does (whatever the order) score ~0,
+    # frames that range ten times as far score (log 10)^2 per coordinate.
+    same = emb.clone()
+    same[:, 2:, cfg.embed:] = reading.flip(1) + 0.3
+    assert keypoint_spread(m, same, ol, 1, eps=1e-6).item() == pytest.approx(0.0, abs=1e-6)
+    far = same.clone()
+    far[:, 2:, cfg.embed:] = reading * 10.0
+    assert keypoint_spread(m, far, ol, 1, eps=1e-6).item() == pytest.approx(8 * math.log(10.0) ** 2, rel=1e-3)
+    keypoint_spread(m, far, ol, 1).backward()
+    assert all(t.grad is not None for t in ol.h + ol.z)
+
+
+def test_keypoint_spread_is_a_term_of_both_losses_when_scaled():
+    x, views = batch_of(seed=2)
+    for spread in (0.0, 1.0):
+        m = Rssm(replace(scaled(keypoints=1.0, keypoint_spread=spread), keypoints=4))
+        assert ("keypoint_spread" in loss_terms(m, x, views)[0]) == (spread > 0)
+        assert ("keypoint_spread" in latent_loss(m, x, views)[1]) == (spread > 0)
 
 
 def test_keypoint_teacher_decodes_training_frames_from_their_own_keypoints():
