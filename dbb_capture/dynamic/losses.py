@@ -127,7 +127,8 @@ def keypoint_spread(model: Rssm, emb: torch.Tensor, open_loop: States, k: int, e
     Blind to phase: past the steps whose keypoints are scored one by one (``keypoint_horizon``) a
     swing may be anywhere on its arc, and this asks only that it range as far as the truth's does.
     On the pendulum a prior trained without it settled to a point (keypoints ranging 0.3-1.1 px where
-    the frames' range 9 px); 400 steps of it on that prior's dynamics gave 9 px and the ball moved.
+    the frames' range 9 px); 400 latent-only steps of it on that prior gave 6-9 px, and the decoded
+    ball's travel (bench motion) was 2.5 px instead of 1.0 (docs/decisions.md, keypoint_spread).
     """
     kp = emb[:, k + 1:, model.cfg.embed:].detach()
     ko = state_keypoints(model, open_loop)
