@@ -19,6 +19,7 @@ from dbb_capture.dynamic.losses import (
     motion_weights,
     sequence_loss,
     sharpness_match,
+    state_keypoints,
     weighted,
     with_predicted_change,
 )
@@ -216,7 +217,7 @@ def test_keypoint_spread_asks_the_open_loop_to_range_as_far_as_the_frames():
     emb = torch.randn(2, 11, cfg.embed + 8)
     ol = _states(9)
     with torch.no_grad():
-        reading = m.kp_head(torch.cat([torch.stack(ol.h, 1), torch.stack(ol.z, 1)], -1))
+        reading = state_keypoints(m, ol)
     # Frames whose keypoints range as the open loop's reading does (whatever the order) score ~0,
     # frames that range ten times as far score (log 10)^2 per coordinate.
     same = emb.clone()
