@@ -168,7 +168,7 @@ def rssm(dataset, out, minutes, steps, size, batch, threads, seed, temperature, 
 @click.option("--temperature", type=click.FloatRange(0.0, 10.0), default=None,
               help="New run-time sampling temperature (also rewrites stepper.ts and run.json's stepper entry).")
 @click.option("--calibrate", is_flag=True,
-              help="Fit the run-time temperature to the footage again (as training does by default).")
+              help="Fit the run-time temperature (and an oscillator cell's bound) to the footage again, as training does.")
 def rssm_eval(run, dataset, temperature, calibrate) -> None:
     """Re-run the evaluation of an RSSM RUN folder (rewrites RUN/report/ and run.json's eval)."""
     from dbb_capture.dynamic.record import RunRecord

@@ -16,8 +16,10 @@ import torch
 from ..core.errors import DbbError
 from ..core.metrics import psnr, ssim
 from ..core.progress import progress
-from .data import SequenceData, first_frames, long_training_runs
+from .data import SequenceData, batch, first_frames, long_training_runs
+from .losses import OPEN_LOOP_FROM
 from .model import Rssm
+from .networks import OscCell
 from .rgba import premultiplied, premultiply
 from .stepper import Stepper, rollout
 
@@ -224,6 +226,33 @@ def evaluate(stepper, data: SequenceData, max_windows: int = 64, rollout_steps: 
             {**figs, **still_figs})
 
 
+# --------------------------------------------------------------------------- the oscillator's bound
+@torch.no_grad()
+def fit_amp_limit(model: Rssm, data: SequenceData, count: int = 256, seed: int = 0) -> None:
+    """Set ``model``'s oscillator bound (:class:`OscCell` ``amp_limit``, (n,)) to each mode's
+    largest length in the states training scores: filtering every training window (up to
+    ``count``, evenly spread) and the open loop from its frame ``OPEN_LOOP_FROM``, both sampled
+    as in training. The model then runs unchanged wherever training took it and stays bounded
+    past it. Nothing to do for a model without oscillator modes."""
+    cell = model.gru
+    if not isinstance(cell, OscCell):
+        return
+    cell.amp_limit.zero_()                  # measure the unbounded cell
+    starts = data.starts("train")
+    if len(starts) == 0:
+        return
+    if len(starts) > count:
+        starts = starts[np.linspace(0, len(starts) - 1, count).round().astype(int)]
+    model.cpu().eval()
+    torch.manual_seed(seed)
+    x, views = batch(data, starts, torch.device("cpu"))
+    f = model.observe(model.encoder(x.flatten(0, 1)).view(x.shape[0], x.shape[1], -1), model.encode_view(views))
+    k = min(OPEN_LOOP_FROM, x.shape[1] - 2)
+    ol = model.imagine(f.h[k], f.z[k], x.shape[1] - k - 1)
+    amp = torch.stack([cell.amplitude(h) for h in f.h + ol.h]).amax(dim=(0, 1))
+    cell.amp_limit.copy_(torch.nan_to_num(amp, nan=0.0, posinf=0.0))
+
+
 # --------------------------------------------------------------------------- the run-time temperature
 @dataclass
 class Calibration:
@@ -246,7 +275,9 @@ class Calibration:
     def to_json(self) -> dict:
         return {"temperature": round(self.temperature, 4),
                 "target_energy": None if self.target is None else round(self.target, 6),
-                "energy_by_temperature": {f"{t:g}": round(e, 6) for t, e in self.energy.items()},
+                # null: the open loop's frames were not finite at that temperature
+                "energy_by_temperature": {f"{t:g}": round(e, 6) if np.isfinite(e) else None
+                                          for t, e in self.energy.items()},
                 "starts": self.starts, "steps": self.steps, "target_steps": self.target_steps, "note": self.note}
 
 
@@ -320,7 +351,10 @@ def calibrate_temperature(model: Rssm, data: SequenceData, steps: int = 150, cou
             prog.update(task, advance=1, info=f"temperature {t:g}")
             energy[float(t)] = still_view_energy(model, data, starts, steps + 1, t, samples, seed)
         prog.update(task, advance=1)
-    ts = np.array(sorted(energy))
+    ts = np.array(sorted(t for t, e in energy.items() if np.isfinite(e)))
+    if len(ts) == 0 or not np.isfinite(target):
+        return Calibration(RUN_TEMPERATURE, None, energy, [int(s) for s in starts], steps, length - 1,
+                           f"the open loop's motion is not finite at any temperature: temperature {RUN_TEMPERATURE:g} kept")
     es = np.maximum.accumulate(np.array([energy[t] for t in ts]))     # interp needs it non-decreasing
     note = None
     if target <= es[0]:

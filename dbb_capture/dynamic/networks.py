@@ -334,7 +334,14 @@ class OscCell(nn.Module):
     Each mode k turns by ``theta_k`` radians a step and keeps ``exp(-exp(nu_k))`` of its length;
     the input drives the modes, the GRU reads them. Initialised near the unit circle (keeps
     0.97-0.999 a step) with periods of 6-120 steps, so a mode rings long after the trained horizon.
-    ``keep_min`` floors the kept length. Same call as ``nn.GRUCell``: ``cell(x, h) -> h``."""
+    ``keep_min`` floors the kept length. Same call as ``nn.GRUCell``: ``cell(x, h) -> h``.
+
+    The modes are linear and the input is read from the state (prior -> z -> drive), so a loop
+    with gain above 1 can grow without end past the trained horizon (a swing run's open loop
+    reached inf by step 100). ``amp_limit`` (n,), fitted after training to each mode's largest
+    length over the training footage (:func:`dbb_capture.dynamic.evaluate.fit_amp_limit`),
+    bounds the lengths outside training: below it nothing changes, above it a length saturates
+    softly at 1.5x. All zeros (models fitted before it, and in training mode): unbounded."""
 
     def __init__(self, input_size: int, units: int, n: int, keep_min: float = 0.0):
         super().__init__()
@@ -349,6 +356,13 @@ class OscCell(nn.Module):
         self.theta = nn.Parameter(2 * math.pi / torch.exp(torch.empty(n).uniform_(math.log(6.0), math.log(120.0), generator=g)))
         with torch.no_grad():
             self.drive.weight.mul_(0.1)
+        # A run-time fit, not a weight: model.pt keeps it beside the state dict (the stepper has it).
+        self.register_buffer("amp_limit", torch.zeros(n), persistent=False)
+
+    def amplitude(self, h: torch.Tensor) -> torch.Tensor:
+        """Each mode's length (B, n) in state ``h`` (B, units + 2n)."""
+        re, im = h[:, self.units:self.units + self.n], h[:, self.units + self.n:]
+        return torch.sqrt(re * re + im * im)
 
     def kept(self) -> torch.Tensor:
         """The share of each mode's length kept a step (n,)."""
@@ -360,5 +374,12 @@ class OscCell(nn.Module):
         c, s = keep * torch.cos(self.theta), keep * torch.sin(self.theta)
         d_re, d_im = self.drive(x).chunk(2, -1)
         re, im = c * re - s * im + d_re, s * re + c * im + d_im
+        if not self.training and bool((self.amp_limit > 0).any()):
+            a = torch.sqrt(re * re + im * im).clamp(min=1e-12)
+            lim = self.amp_limit.clamp(min=1e-12)
+            w = 0.5 * lim
+            bounded = torch.minimum(a, lim) + w * torch.tanh((a - lim).clamp(min=0.0) / w)
+            scale = torch.where(self.amp_limit > 0, bounded / a, torch.ones_like(a))
+            re, im = re * scale, im * scale
         g = self.cell(torch.cat([x, re, im], -1), g)
         return torch.cat([g, re, im], -1)

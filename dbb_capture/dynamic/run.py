@@ -26,7 +26,8 @@ from ..core.progress import console, progress, resumed_line
 from .config import RssmConfig, TrainConfig, leak_at_frame_rate
 from .anchor import ViewAtlas, build_atlas
 from .data import SequenceData, load_sequences, with_anchor
-from .evaluate import RUN_TEMPERATURE, EvalReport, calibrate_temperature, evaluate
+from .evaluate import RUN_TEMPERATURE, EvalReport, calibrate_temperature, evaluate, fit_amp_limit
+from .networks import OscCell
 from .figures import write_figures
 from .model import Rssm
 from .record import RunRecord, StepperRecord, TrainingRecord
@@ -140,12 +141,12 @@ def write_run(out: Path, state: TrainState, data: SequenceData, dataset: Path, t
     """The run folder of a trained state; ``temperature`` None: calibrated (run.json says how);
     ``anchor`` the view anchor's PlenOctree run folder (its tree, record and report are kept)."""
     model = state.run_model()           # checkpoint.pt keeps the last weights (to continue training)
+    fit_amp_limit(model, data)
     cal = calibrate_temperature(model, data) if temperature is None else None
     temperature = cal.temperature if cal is not None else float(temperature)
     with atomic_dir(out, overwrite=True) as tmp:
         shutil.copyfile(ckpt, tmp / "checkpoint.pt")
-        torch.save({"config": asdict(model.cfg), "state_dict": model.state_dict(),
-                    "anchor": None if data.atlas is None else data.atlas.state()}, tmp / "model.pt")
+        save_model(model, data.atlas, tmp / "model.pt")
         if anchor is not None:
             shutil.copytree(anchor, tmp / ANCHOR_DIR, ignore=shutil.ignore_patterns("checkpoint.pt", ".*"))
         script_stepper(model, temperature, data.atlas, data.horizon()).save(str(tmp / "stepper.ts"))
@@ -180,6 +181,14 @@ def run_eval(model: Rssm, data: SequenceData, folder: Path, history: list[dict],
     return report
 
 
+def save_model(model: Rssm, atlas: ViewAtlas | None, path: Path) -> None:
+    """A run's ``model.pt``: config, weights, the view anchor's atlas and the oscillator's bound
+    (a run-time fit, :func:`fit_amp_limit`; None without oscillator modes)."""
+    amp = model.gru.amp_limit.tolist() if isinstance(model.gru, OscCell) else None
+    torch.save({"config": asdict(model.cfg), "state_dict": model.state_dict(),
+                "anchor": None if atlas is None else atlas.state(), "amp_limit": amp}, path)
+
+
 def load_model(run: Path) -> Rssm:
     """The trained model of a run folder (``model.pt``), in eval mode."""
     return _read_model(run)[0]
@@ -205,6 +214,8 @@ def _read_model(run: Path) -> tuple[Rssm, ViewAtlas | None]:
         model = Rssm(RssmConfig.from_json(ck["config"]))
         model.load_state_dict(ck["state_dict"])
         atlas = None if ck.get("anchor") is None else ViewAtlas.from_state(ck["anchor"])
+        if ck.get("amp_limit") is not None and isinstance(model.gru, OscCell):
+            model.gru.amp_limit.copy_(torch.as_tensor(ck["amp_limit"], dtype=torch.float32))
     except (OSError, KeyError, RuntimeError, TypeError, ValueError) as e:
         raise DbbError(f"cannot read the RSSM model of {run}: {e}") from None
     if model.cfg.anchor and atlas is None:
@@ -218,8 +229,9 @@ def eval_run(run: Path, dataset: Path | None = None, temperature: float | None =
 
     Replaces ``report/`` and the ``eval`` entry of ``run.json``; a new ``temperature`` (or
     ``calibrate``: fit it again, :func:`calibrate_temperature`, and the warm-up to the dataset's
-    horizon) also replaces ``stepper.ts`` and the stepper's temperature in ``run.json``. Each file
-    is written aside and renamed into place, run.json last.
+    horizon) also replaces ``stepper.ts`` and the stepper's temperature in ``run.json``;
+    ``calibrate`` fits the oscillator's bound again too (:func:`fit_amp_limit`, ``model.pt``).
+    Each file is written aside and renamed into place, run.json last.
     """
     run = Path(run)
     record = RunRecord.read(run)
@@ -228,6 +240,10 @@ def eval_run(run: Path, dataset: Path | None = None, temperature: float | None =
     history = read_checkpoint(ck).history if ck.is_file() else []
     stepper = record.stepper
     warmup = stepper.warmup
+    refit = calibrate and isinstance(model.gru, OscCell)
+    if refit:
+        fit_amp_limit(model, data)
+        save_model(model, data.atlas, run / f".{record.model_file}.partial")
     if calibrate:
         cal = calibrate_temperature(model, data)
         temperature, stepper.temperature_calibration, warmup = cal.temperature, cal.to_json(), data.horizon()
@@ -237,7 +253,9 @@ def eval_run(run: Path, dataset: Path | None = None, temperature: float | None =
         stepper.temperature_calibration = None          # set by hand
     with atomic_dir(run / "report", overwrite=True) as tmp:
         report = run_eval(model, data, tmp, history, temperature, warmup)
-    if (temperature, warmup) != (stepper.temperature, stepper.warmup):
+    if refit:
+        (run / f".{record.model_file}.partial").replace(run / record.model_file)
+    if refit or (temperature, warmup) != (stepper.temperature, stepper.warmup):
         ts = run / f".{stepper.file}.partial"
         script_stepper(model, temperature, data.atlas, warmup).save(str(ts))
         ts.replace(run / stepper.file)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 
 import numpy as np
@@ -16,6 +17,7 @@ from dbb_capture.dynamic.evaluate import (
     RUN_TEMPERATURE,
     calibrate_temperature,
     evaluate,
+    fit_amp_limit,
     motion_coherence,
     motion_energy,
     nearest_training_frames,
@@ -148,3 +150,43 @@ def test_calibrated_temperature_moves_the_still_view_as_much_as_the_footage(data
     alternate = replace(data, splits=np.where(np.arange(len(data.splits)) % 2 == 0, "train", "test"))
     none = calibrate_temperature(m, alternate)
     assert none.temperature == RUN_TEMPERATURE and none.target is None and "consecutive" in none.note
+
+
+def test_the_oscillator_bound_is_the_largest_length_training_reaches(data):
+    m = moving_model(cfg=replace(SMALL, deter=24, osc=4))
+    fit_amp_limit(m, data)
+    limit = m.gru.amp_limit.clone()
+    assert limit.shape == (4,) and bool((limit > 0).all())
+    # Another sampling of the training windows' filtering states reaches about as far.
+    from dbb_capture.dynamic.data import batch
+    x, views = batch(data, data.starts("train"), torch.device("cpu"))
+    torch.manual_seed(5)
+    with torch.no_grad():
+        f = m.observe(m.encoder(x.flatten(0, 1)).view(*x.shape[:2], -1), m.encode_view(views))
+        amp = torch.stack([m.gru.amplitude(h) for h in f.h]).amax(dim=(0, 1))
+        assert 0.5 < float((amp / limit).max()) < 1.25
+        # A long open loop stays finite and within the soft bound's 1.5x.
+        h, z = f.h[-1], f.z[-1]
+        for _ in range(300):
+            h = m.transition(h, z)
+            z = m.prior_stats(h)[0] * 3.0
+    assert bool(torch.isfinite(h).all()) and bool((m.gru.amplitude(h) <= 1.5 * limit + 1e-5).all())
+    fit_amp_limit(m, data)                          # fitted again: the same, not bounded by the first fit
+    assert torch.allclose(m.gru.amp_limit, limit)
+    plain = moving_model()
+    fit_amp_limit(plain, data)                      # no oscillator: nothing to do
+    assert not hasattr(plain.gru, "amp_limit")
+
+
+def test_a_temperature_whose_open_loop_is_not_finite_is_left_out(data, monkeypatch):
+    m = moving_model()
+    real = ev.still_view_energy
+    monkeypatch.setattr(ev, "still_view_energy", lambda *a: float("nan") if a[4] >= 3.0 else real(*a))
+    cal = calibrate_temperature(m, data, steps=20, count=2)
+    assert cal.temperature <= 2.0 and np.isfinite(cal.temperature)
+    doc = cal.to_json()
+    assert doc["energy_by_temperature"]["3"] is None and doc["energy_by_temperature"]["1"] is not None
+    monkeypatch.setattr(ev, "still_view_energy", lambda *a: float("nan"))
+    none = calibrate_temperature(m, data, steps=20, count=2)
+    assert none.temperature == RUN_TEMPERATURE and "not finite" in none.note
+    assert json.loads(json.dumps(none.to_json(), allow_nan=False))["target_energy"] is None

@@ -185,3 +185,36 @@ def test_oscillator_modes_ring_after_the_input_stops():
         h = floored(torch.zeros(1, 64), torch.cat([torch.zeros(1, 16), torch.ones(1, 8)], 1))
     assert torch.allclose(torch.sqrt(h[0, 16:20] ** 2 + h[0, 20:] ** 2), torch.full((4,), 0.999 * 2 ** 0.5))
     assert isinstance(Rssm(replace(SMALL, deter=24, osc=4)).gru, OscCell)
+
+
+def test_the_oscillator_bound_holds_past_the_range_and_changes_nothing_within_it():
+    torch.manual_seed(0)
+    cell = OscCell(8, 6, 3, keep_min=0.999).eval()
+    with torch.no_grad():
+        cell.drive.weight.mul_(50.0)
+    # A loop with gain above 1 (the modes drive themselves, as prior -> z -> drive can): unbounded it grows.
+    feed = torch.randn(8, 6) * 4.0
+    def ring(c, steps=200):
+        h = torch.zeros(1, 12)
+        h[:, 6] = 0.1
+        with torch.no_grad():
+            for _ in range(steps):
+                h = c(torch.tanh(h[:, 6:]) @ feed.T + h[:, 6:] @ feed.T, h)
+        return h
+    wild = cell.amplitude(ring(cell))
+    assert not bool(torch.isfinite(wild).all()) or float(wild.max()) > 1e6
+    cell.amp_limit.fill_(2.0)
+    amp = cell.amplitude(ring(cell))
+    assert bool(torch.isfinite(amp).all()) and float(amp.max()) <= 3.0 + 1e-5 and float(amp.max()) > 2.0
+    # Below the limit the cell is the unbounded one, exactly; training mode never bounds.
+    x, h = 0.01 * torch.randn(4, 8), torch.cat([torch.randn(4, 6), 0.5 * torch.randn(4, 6).clamp(-1, 1)], 1)
+    free = OscCell(8, 6, 3, keep_min=0.999).eval()
+    free.load_state_dict(cell.state_dict())
+    assert "amp_limit" not in cell.state_dict()                   # a run-time fit, not a weight
+    with torch.no_grad():
+        assert float(cell.amplitude(free(x, h)).max()) < 2.0       # stays within the limit
+        assert free.amp_limit.eq(0).all() and torch.equal(cell(x, h), free(x, h))
+        big = h.clone()
+        big[:, 6:] *= 40.0
+        assert not torch.equal(cell(x, big), free(x, big))
+        assert torch.equal(cell.train()(x, big), free(x, big))

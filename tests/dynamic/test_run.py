@@ -154,3 +154,27 @@ def test_an_older_run_is_refused_with_one_line_saying_to_train_again(crops, tmp_
                          (export_cli.main, ["bundle", str(out), "-o", str(tmp_path / "bundle")])):
         r = CliRunner().invoke(runner, args)
         assert r.exit_code == 2 and len(_lines(r)) == 1 and "train" in _lines(r)[0] and "again" in _lines(r)[0], r.output
+
+
+def test_an_oscillator_runs_bound_is_fitted_saved_and_fitted_again(crops, tmp_path):
+    from dbb_capture.cli import train as cli
+
+    out = tmp_path / "run"
+    train_run(crops.root, out, replace(SMALL, deter=24, osc=4), TrainConfig(steps=1, batch=2), quiet=True)
+    saved = torch.load(out / "model.pt", weights_only=False)
+    limit = torch.tensor(saved["amp_limit"])
+    assert limit.shape == (4,) and bool((limit > 0).all())
+    assert torch.equal(load_model(out).gru.amp_limit, limit)
+    assert torch.equal(torch.jit.load(str(out / "stepper.ts")).gru.amp_limit, limit)   # the stepper bounds too
+    # A model saved before the bound existed loads unbounded; fitting its run again fits it.
+    torch.save({k: v for k, v in saved.items() if k != "amp_limit"}, out / "model.pt")
+    assert load_model(out).gru.amp_limit.eq(0).all()
+    r = CliRunner().invoke(cli.main, ["rssm-eval", str(out), "--calibrate"])
+    assert r.exit_code == 0, r.output
+    assert torch.allclose(load_model(out).gru.amp_limit, limit)
+    assert torch.allclose(torch.jit.load(str(out / "stepper.ts")).gru.amp_limit, limit)
+    assert not list(out.glob(".*"))
+    # Without oscillator modes there is nothing to bound.
+    plain = tmp_path / "plain"
+    train_run(crops.root, plain, SMALL, TrainConfig(steps=1, batch=2), quiet=True)
+    assert torch.load(plain / "model.pt", weights_only=False)["amp_limit"] is None
