@@ -63,3 +63,15 @@ def test_error_parts_put_an_outline_one_pixel_off_in_its_edge_bands():
     assert p["mse_white_core"] > 0 and np.isclose(p["mse_white_core_edge"], p["mse_white_core"])
     same = bench_plenoctree.summarize_parts([bench_plenoctree.error_parts(gt, gt)])
     assert same["mse_white_room_edge"] == same["mse_white_core_edge"] == 0
+
+
+def test_swing_period_finds_a_drifting_swing_and_not_jitter():
+    """A 21-frame swing of 10 px riding on a slow drift, with a little noise, reads period 21 and
+    amplitude 10 with most of its power there; a jittering point has no rhythm to speak of."""
+    rng = np.random.default_rng(0)
+    t = np.arange(150)
+    swing = np.stack([40 + 0.1 * t, 30 + 10 * np.sin(2 * np.pi * t / 21) + 0.1 * t], 1) + rng.normal(0, 0.5, (150, 2))
+    s = bench_rssm.swing_period(swing)
+    assert abs(s["period"] - 21) < 1.0 and abs(s["amp_px"] - 10) < 1.5 and s["share"] > 0.7
+    jitter = 32 + rng.normal(0, 3, (150, 2))
+    assert bench_rssm.swing_period(jitter)["share"] < 0.35
