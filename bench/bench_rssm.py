@@ -431,7 +431,7 @@ def swing_period(points: np.ndarray, shortest: float = 4.0, longest: float = 60.
     The autocorrelation's largest value past a few lags does not give the period: a smooth path
     correlates best with itself at the smallest lag looked at, whatever its rhythm."""
     k = int(longest) | 1
-    pad = np.pad(points.astype(np.float64), ((k // 2, k // 2), (0, 0)), mode="edge")
+    pad = np.pad(points.astype(np.float64), ((k // 2, k // 2), (0, 0)), mode="reflect", reflect_type="odd")
     drift = np.stack([np.convolve(pad[:, i], np.ones(k) / k, "valid") for i in range(2)], 1)
     d = points - drift
     axis = np.linalg.svd(d - d.mean(0), full_matrices=False)[2][0]
