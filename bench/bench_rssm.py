@@ -434,8 +434,8 @@ def swing_period(points: np.ndarray, shortest: float = 4.0, longest: float = 60.
     pad = np.pad(points.astype(np.float64), ((k // 2, k // 2), (0, 0)), mode="reflect", reflect_type="odd")
     drift = np.stack([np.convolve(pad[:, i], np.ones(k) / k, "valid") for i in range(2)], 1)
     d = points - drift
-    axis = np.linalg.svd(d - d.mean(0), full_matrices=False)[2][0]
-    s = (d - d.mean(0)) @ axis
+    d -= d.mean(0)
+    s = d @ np.linalg.svd(d, full_matrices=False)[2][0]      # along the main axis
     n = max(1024, 4 * len(s))
     power = np.abs(np.fft.rfft(s * np.hanning(len(s)), n)) ** 2
     f = np.fft.rfftfreq(n)
