@@ -64,9 +64,6 @@ class RssmConfig:
     keypoints: int = 0             # > 0: this many spatial-softmax keypoints join the encoder's embedding
                                    # (SpatialSoftmax): the flattened conv stack all but ignores a part a few
                                    # pixels wide (a 5-px ball moves its embedding by ~1e-5), a keypoint follows it
-    keypoint_sharpness: float = 5.0  # the keypoints' softmax sharpness at the start (learned unless
-                                   # frozen); higher puts a small part's keypoints on it, not pulled
-                                   # toward the frame's centre by the plain surroundings
     keypoints_frozen: bool = False  # the keypoint layer keeps its initial weights (a learned one may
                                    # spread its softmax until it no longer follows the part)
     keypoint_maps: bool = False    # (needs loss_scales.keypoints) the decoder draws from keypoints: Gaussian
@@ -130,8 +127,6 @@ class RssmConfig:
             raise DbbError(f"RSSM {{=keypoint_horizon}} must be at least 1, not {self.keypoint_horizon}")
         if self.keypoint_teacher and not self.keypoint_maps:
             raise DbbError("RSSM {=keypoint_teacher} needs {=keypoint_maps}")
-        if self.keypoint_sharpness <= 0:
-            raise DbbError(f"RSSM {{=keypoint_sharpness}} must be > 0, not {self.keypoint_sharpness}")
         if self.keypoint_map_std <= 0:
             raise DbbError(f"RSSM {{=keypoint_map_std}} must be > 0, not {self.keypoint_map_std}")
         if not 0.0 <= self.osc_keep_min < 1.0:

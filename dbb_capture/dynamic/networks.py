@@ -101,14 +101,13 @@ class SpatialSoftmax(nn.Module):
 
     Each channel of a 1x1 conv is standardised over the map before the softmax, so a small
     part unlike its surroundings dominates whatever its size; the sharpness is learned (one per
-    keypoint, starting at ``sharpness``: at 5 a 5-px ball on a plain wall moves its keypoints by
-    ~0.1-0.6, but the wall's weight pulls them toward the centre, off the ball).
+    keypoint, starting at 5: a 5-px ball on a plain wall then moves its keypoints by ~0.1-0.6).
     """
 
-    def __init__(self, channels: int, k: int, size: int, sharpness: float = 5.0):
+    def __init__(self, channels: int, k: int, size: int):
         super().__init__()
         self.conv = nn.Conv2d(channels, k, 1)
-        self.log_beta = nn.Parameter(torch.full((k,), math.log(sharpness)))
+        self.log_beta = nn.Parameter(torch.full((k,), math.log(5.0)))
         c = (torch.arange(size, dtype=torch.float32) + 0.5) * (2.0 / size) - 1.0     # pixel centres
         self.register_buffer("coords", c, persistent=False)
 
@@ -133,8 +132,8 @@ class Encoder(nn.Module):
         self.convs = nn.Sequential(*layers)
         self.out = nn.Linear(c_in * 16, cfg.embed)
         # Keypoints over the first (finest) feature map.
-        self.keypoints = (SpatialSoftmax(_enc_channels(cfg)[0], cfg.keypoints, cfg.size // 2,
-                                         cfg.keypoint_sharpness) if cfg.keypoints > 0 else None)
+        self.keypoints = (SpatialSoftmax(_enc_channels(cfg)[0], cfg.keypoints, cfg.size // 2)
+                          if cfg.keypoints > 0 else None)
         self.maps = bool(cfg.keypoint_maps)
         self.map_std = float(cfg.keypoint_map_std)
 

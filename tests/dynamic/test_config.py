@@ -71,7 +71,6 @@ def test_validation_names_the_setting():
                       (replace(SMALL, keypoints=4, keypoint_maps=True), "keypoint_maps"),
                       (replace(scaled(keypoints=1.0), keypoints=4, keypoint_teacher=True), "keypoint_teacher"),
                       (replace(SMALL, keypoint_map_std=0.0), "keypoint_map_std"), (replace(SMALL, keypoints=-1), "keypoints"),
-                      (replace(SMALL, keypoint_sharpness=0.0), "keypoint_sharpness"),
                       (replace(SMALL, deter=16, osc=8), "osc"), (replace(SMALL, osc_keep_min=1.0), "osc_keep_min"),
                       (replace(SMALL, warp_leak=1.0), "warp_leak"), (replace(SMALL, warp_leak_fps=-1.0), "warp_leak_fps"),
                       (scaled(sharp=-1.0), "loss_scales.sharp"), (replace(SMALL, loss_scales={"rec": 1.0}), "loss_scales"),

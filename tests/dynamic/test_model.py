@@ -59,5 +59,3 @@ def test_keypoint_heads():
     assert m.kp_head is m.decoder.kp_net
     frozen = Rssm(replace(SMALL, keypoints=4, keypoints_frozen=True))
     assert not any(p.requires_grad for p in frozen.encoder.keypoints.parameters())
-    sharp = Rssm(replace(SMALL, keypoints=4, keypoint_sharpness=20.0)).encoder.keypoints
-    assert torch.allclose(sharp.log_beta.exp(), torch.full((4,), 20.0))   # the softmax starts at the setting
