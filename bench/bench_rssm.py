@@ -424,8 +424,8 @@ def path_distance(points: np.ndarray, path: np.ndarray) -> float:
 def swing_period(points: np.ndarray, shortest: float = 4.0, longest: float = 60.0) -> dict:
     """The rhythm of a path ``points`` (T, 2), e.g. :func:`centroids`: the dominant period in
     frames (between ``shortest`` and ``longest``) of its motion along its main axis, once its drift
-    (a moving mean over ``longest`` frames, the path odd-reflected at its ends so the
-    mean follows a trend there) is taken out; ``share``, the part of that motion's power
+    (a moving mean over ``longest`` frames, the path odd-reflected at its ends so the mean follows
+    a trend there) is taken out; ``share``, the part of that motion's power
     at that period, within the path's resolution (+-2 / T cycles a frame; a clean swing near 1,
     white jitter ~0.2-0.35); ``amp_px``, the motion's amplitude (sqrt 2 times its RMS, a sine's peak).
 
