@@ -33,7 +33,6 @@ LOSS_SCALES: dict[str, float] = {
     "sharp": 0.0,        # the open loop's sharpness matched to the truth's (losses.sharpness_match)
     "keypoints": 0.0,    # the state predicts its frame's keypoints (needs keypoints > 0)
     "keypoint_spread": 0.0,  # the open loop's keypoints spread over time as the frames' do (needs keypoints)
-    "keypoint_rhythm": 0.0,  # the open loop's keypoints ring at the frames' periods (needs keypoints)
     "energy": 0.0,       # the open loop's motion energy matched to the truth's (losses.energy_match)
 }
 
@@ -122,9 +121,8 @@ class RssmConfig:
             raise DbbError("RSSM loss_scales.keypoints needs {=keypoints} > 0")
         if self.keypoint_maps and self.scale("keypoints") <= 0:
             raise DbbError("RSSM {=keypoint_maps} needs loss_scales.keypoints > 0 (and {=keypoints} > 0)")
-        for term in ("keypoint_spread", "keypoint_rhythm"):
-            if self.scale(term) > 0 and self.scale("keypoints") <= 0:
-                raise DbbError(f"RSSM loss_scales.{term} needs loss_scales.keypoints > 0")
+        if self.scale("keypoint_spread") > 0 and self.scale("keypoints") <= 0:
+            raise DbbError("RSSM loss_scales.keypoint_spread needs loss_scales.keypoints > 0")
         if self.keypoint_horizon is not None and self.keypoint_horizon < 1:
             raise DbbError(f"RSSM {{=keypoint_horizon}} must be at least 1, not {self.keypoint_horizon}")
         if self.keypoint_teacher and not self.keypoint_maps:

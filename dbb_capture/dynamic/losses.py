@@ -135,40 +135,6 @@ def keypoint_spread(model: Rssm, emb: torch.Tensor, open_loop: States, k: int, e
     return ((torch.log(ko.std(1) + eps) - torch.log(kp.std(1) + eps)) ** 2).sum(-1).mean()
 
 
-def _rhythm(kp: torch.Tensor) -> torch.Tensor:
-    """Magnitude spectra (B, F, C) of keypoint tracks ``kp`` (B, T, C) along time: each track's mean
-    and straight-line drift removed (least squares), Hann-windowed, ``rfft`` with ``norm="ortho"``."""
-    T = kp.shape[1]
-    t = torch.linspace(-1.0, 1.0, T, device=kp.device, dtype=kp.dtype)[None, :, None]
-    x = kp - kp.mean(1, keepdim=True)
-    x = x - t * (x * t).sum(1, keepdim=True) / (t * t).sum()
-    w = torch.hann_window(T, periodic=False, device=kp.device, dtype=kp.dtype)[None, :, None]
-    f = torch.fft.rfft(x * w, dim=1, norm="ortho")
-    return (f.real ** 2 + f.imag ** 2 + 1e-12).sqrt()
-
-
-def rhythm_error(ko: torch.Tensor, kp: torch.Tensor, eps: float = 0.01) -> torch.Tensor:
-    """How far the rhythm of keypoint tracks ``ko`` (B, T, C), T >= 3, is from that of ``kp`` (the same
-    shape): the squared difference of their magnitude spectra (:func:`_rhythm`: straight-line drift
-    removed), summed over frequencies, over ``kp``'s spectral energy plus ``eps`` squared per step
-    (``kp``'s std floored at ``eps``), summed over coordinates, mean over the batch. A still ``ko``
-    scores 1 a coordinate; ``ko`` the same track in any phase, reversed or with another drift, 0."""
-    fo, fp = _rhythm(ko), _rhythm(kp)
-    floor = eps * eps * kp.shape[1]
-    return (((fo - fp) ** 2).sum(1) / ((fp ** 2).sum(1) + floor)).sum(-1).mean()
-
-
-def keypoint_rhythm(model: Rssm, emb: torch.Tensor, open_loop: States, k: int, eps: float = 0.01) -> torch.Tensor:
-    """:func:`rhythm_error` of ``kp_head``'s reading of the open loop from frame ``k`` (T - k >= 3
-    states) against the frames' keypoints (``emb`` (B, T+1, embed + 2K), detached).
-
-    Blind to phase like :func:`keypoint_spread`, but not to period: a slow drift that ranges as far
-    as a swing matches the spread and not the rhythm, so an open loop scored this way is asked to
-    ring at the frames' periods, each in the share of the motion it has.
-    """
-    return rhythm_error(state_keypoints(model, open_loop), emb[:, k + 1:, model.cfg.embed:].detach(), eps)
-
-
 def _dynamics_kl(f: States) -> torch.Tensor:
     """KL(sg(q) || p) of a filtering pass, batch mean per step, mean over steps: it trains the prior."""
     return torch.stack([kl_divergence(qm.detach(), qs.detach(), pm, ps).mean()
@@ -203,8 +169,6 @@ def _keypoint_terms(terms: dict[str, torch.Tensor], model: Rssm, emb: torch.Tens
     terms["keypoints"] = keypoint_error(model, emb, f, ol, k)
     if model.cfg.scale("keypoint_spread") > 0 and len(ol.h) > 1:
         terms["keypoint_spread"] = keypoint_spread(model, emb, ol, k)
-    if model.cfg.scale("keypoint_rhythm") > 0 and len(ol.h) > 2:
-        terms["keypoint_rhythm"] = keypoint_rhythm(model, emb, ol, k)
 
 
 # --------------------------------------------------------------------------- the two losses
@@ -337,5 +301,5 @@ def latent_loss(model: Rssm, x: torch.Tensor, views: torch.Tensor,
     terms = {"kl": cfg.kl_balance * dyn, "overshoot": _overshoot(f, ol, k)}
     _keypoint_terms(terms, model, emb, f, ol, k)
     parts = {"kl_dyn": dyn.item(), "overshoot": terms["overshoot"].item(),
-             **{n: terms[n].item() for n in ("keypoints", "keypoint_spread", "keypoint_rhythm") if n in terms}}
+             **{n: terms[n].item() for n in ("keypoints", "keypoint_spread") if n in terms}}
     return weighted(terms, cfg.loss_scales), parts

@@ -13,12 +13,10 @@ from dbb_capture.dynamic.losses import (
     OPEN_LOOP_FROM,
     energy_match,
     keypoint_error,
-    keypoint_rhythm,
     keypoint_spread,
     latent_loss,
     loss_terms,
     motion_weights,
-    rhythm_error,
     sequence_loss,
     sharpness_match,
     state_keypoints,
@@ -268,39 +266,3 @@ def test_latent_loss_trains_the_transition_and_prior_alone():
     assert set(parts) == {"kl_dyn", "overshoot", "keypoints"} and math.isfinite(loss.item())
     trained = {n.split(".")[0] for n, p in m.named_parameters() if p.grad is not None and p.grad.abs().sum() > 0}
     assert trained == {"z_in", "gru", "prior", "kp_head"}
-
-
-def test_rhythm_error_tells_a_swing_from_a_drift_that_ranges_as_far():
-    t = torch.arange(60.0)[None, :, None]
-    swing = 0.2 * torch.sin(2 * math.pi * t / 20.0)
-    # The same swing in another phase, with another offset and drift, matches; reversed, exactly.
-    later = 0.2 * torch.sin(2 * math.pi * (t + 7.0) / 20.0) + 0.5 + 0.004 * t
-    assert rhythm_error(later, swing).item() < 0.05
-    assert rhythm_error(swing.flip(1) - 0.1 * t / 60, swing).item() == pytest.approx(0.0, abs=1e-6)
-    # A slow wave that ranges as far (the same std) matches the spread, but scores nearly as badly
-    # as standing still here.
-    slow = 0.2 * torch.sin(2 * math.pi * t / 60.0)
-    assert slow.std().item() == pytest.approx(swing.std().item(), rel=0.02)
-    assert rhythm_error(slow, swing).item() > 0.8
-    # Standing still scores 1, less the floor's share.
-    assert 0.95 < rhythm_error(torch.zeros_like(swing), swing).item() < 1.0
-
-
-def test_keypoint_rhythm_reads_the_open_loop_and_is_a_term_of_both_losses_when_scaled():
-    cfg = replace(scaled(keypoints=1.0, keypoint_rhythm=1.0), keypoints=4)
-    m = Rssm(cfg)
-    torch.manual_seed(0)
-    emb = torch.randn(2, 11, cfg.embed + 8)
-    ol = _states(9)
-    with torch.no_grad():
-        reading = state_keypoints(m, ol)
-    same = emb.clone()
-    same[:, 2:, cfg.embed:] = reading.flip(1) + 0.3
-    assert keypoint_rhythm(m, same, ol, 1).item() == pytest.approx(0.0, abs=1e-5)
-    keypoint_rhythm(m, emb, ol, 1).backward()
-    assert all(t.grad is not None for t in ol.h + ol.z)
-    x, views = batch_of(seed=2)
-    for scale in (0.0, 1.0):
-        m = Rssm(replace(scaled(keypoints=1.0, keypoint_rhythm=scale), keypoints=4))
-        assert ("keypoint_rhythm" in loss_terms(m, x, views)[0]) == (scale > 0)
-        assert ("keypoint_rhythm" in latent_loss(m, x, views)[1]) == (scale > 0)
