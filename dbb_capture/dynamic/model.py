@@ -100,6 +100,7 @@ class Rssm(LatentStep):
                                       nn.Linear(cfg.hidden, 2 * cfg.keypoints)) if cfg.scale("keypoints") > 0 else None)
         if cfg.keypoints_frozen and self.encoder.keypoints is not None:
             self.encoder.keypoints.requires_grad_(False)
+            self.encoder.convs[0].requires_grad_(False)     # the features the keypoints read
         self.register_buffer("octaves", view_octaves(cfg.view_freqs), persistent=False)
 
     def observe(self, emb: torch.Tensor, pe: torch.Tensor, train_posterior: bool = True) -> States:
