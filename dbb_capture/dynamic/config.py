@@ -64,8 +64,9 @@ class RssmConfig:
     keypoints: int = 0             # > 0: this many spatial-softmax keypoints join the encoder's embedding
                                    # (SpatialSoftmax): the flattened conv stack all but ignores a part a few
                                    # pixels wide (a 5-px ball moves its embedding by ~1e-5), a keypoint follows it
-    keypoints_frozen: bool = False  # the keypoint layer keeps its initial weights (a learned one may
-                                   # spread its softmax until it no longer follows the part)
+    keypoints_frozen: bool = False  # the keypoint layer and the encoder conv it reads keep their initial
+                                   # weights (learned, the softmax spreads and the features drift until
+                                   # the keypoints no longer follow the part)
     keypoint_maps: bool = False    # (needs loss_scales.keypoints) the decoder draws from keypoints: Gaussian
                                    # maps of the keypoints its state predicts (kp_head) and of the context
                                    # frame's join its layers (Minderer et al. 2019), so a small part can be

@@ -156,8 +156,8 @@ def test_sharpness_match_costs_a_faded_part_not_a_moved_one():
 
 def test_keypoint_loss_makes_the_state_say_where_the_spot_is():
     """loss_scales.keypoints: the state (h, z) is trained to give its frame's keypoints, the posterior's at
-    each filtering step and the prior samples' along the open loop; a frozen keypoint layer takes
-    no gradient, and a few steps on spot sequences bring that error down."""
+    each filtering step and the prior samples' along the open loop; a frozen keypoint layer (and
+    the conv it reads) takes no gradient, and a few steps on spot sequences bring that error down."""
     torch.manual_seed(0)
     cfg = replace(scaled(keypoints=10.0), keypoints=4, keypoints_frozen=True)
     m = Rssm(cfg)
@@ -173,10 +173,11 @@ def test_keypoint_loss_makes_the_state_say_where_the_spot_is():
     loss.backward()
     assert parts["keypoints"] > 0
     assert all(p.grad is None for p in m.encoder.keypoints.parameters())
+    assert all(p.grad is None for p in m.encoder.convs[0].parameters())
     for part in (m.kp_head, m.post, m.prior, m.gru):
         assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in part.parameters())
     opt = torch.optim.Adam([p for p in m.parameters() if p.requires_grad], 3e-3)
-    for _ in range(70):
+    for _ in range(100):
         opt.zero_grad()
         loss, parts = sequence_loss(m, x, v)
         loss.backward()

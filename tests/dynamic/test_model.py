@@ -59,3 +59,5 @@ def test_keypoint_heads():
     assert m.kp_head is m.decoder.kp_net
     frozen = Rssm(replace(SMALL, keypoints=4, keypoints_frozen=True))
     assert not any(p.requires_grad for p in frozen.encoder.keypoints.parameters())
+    assert not any(p.requires_grad for p in frozen.encoder.convs[0].parameters())   # the features it reads
+    assert all(p.requires_grad for p in frozen.encoder.convs[1].parameters())
