@@ -98,9 +98,8 @@ class Rssm(LatentStep):
         self.kp_head = (self.decoder.kp_net if cfg.keypoint_maps else
                         nn.Sequential(nn.Linear(cfg.deter + cfg.stoch, cfg.hidden), nn.SiLU(),
                                       nn.Linear(cfg.hidden, 2 * cfg.keypoints)) if cfg.scale("keypoints") > 0 else None)
-        if cfg.keypoints_frozen and self.encoder.keypoints is not None:
-            self.encoder.keypoints.requires_grad_(False)
-            self.encoder.convs[0].requires_grad_(False)     # the features the keypoints read
+        if cfg.keypoints_frozen:
+            self.encoder.freeze_keypoints()
         self.register_buffer("octaves", view_octaves(cfg.view_freqs), persistent=False)
 
     def observe(self, emb: torch.Tensor, pe: torch.Tensor, train_posterior: bool = True) -> States:

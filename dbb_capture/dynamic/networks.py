@@ -137,6 +137,14 @@ class Encoder(nn.Module):
         self.maps = bool(cfg.keypoint_maps)
         self.map_std = float(cfg.keypoint_map_std)
 
+    def freeze_keypoints(self) -> None:
+        """Keep the keypoint layer and the first conv, whose (finest) map it reads, at their
+        initial weights: learned, the softmax spreads and the features drift until the keypoints
+        no longer follow a small part."""
+        if self.keypoints is not None:
+            self.keypoints.requires_grad_(False)
+            self.convs[0].requires_grad_(False)
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         maps = self.features(x)                  # coarsest first: the last is the finest
         kp = x.new_zeros(x.shape[0], 0) if self.keypoints is None else self.keypoints(maps[-1])
